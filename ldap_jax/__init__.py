@@ -1,0 +1,33 @@
+"""ldap_jax: geometric integrators for nonholonomic systems with symmetries, in JAX.
+
+The RDP (reduced d'Alembert-Pontryagin) integrator of Kobilarov, Marsden and Sukhatme,
+"Geometric discretization of nonholonomic systems with symmetries" (DCDS-S, 2010), with the
+steered car and the snakeboard, RK baselines, a diffrax reference, and end-to-end
+differentiable rollouts.
+"""
+
+from importlib.metadata import PackageNotFoundError, version
+
+from . import integrators as integrators
+from . import lie as lie
+from . import systems as systems
+from ._controls import AbstractControls as AbstractControls
+from ._controls import Sampled as Sampled
+from ._controls import Sinusoids as Sinusoids
+from ._reference import Solution as Solution
+from ._reference import reference as reference
+from ._simulate import RESULTS as RESULTS
+from ._simulate import Trajectory as Trajectory
+from ._simulate import simulate as simulate
+from .integrators import RDP as RDP
+from .integrators import RK2 as RK2
+from .integrators import RK4 as RK4
+from .lie import SE2 as SE2
+from .systems import AbstractSystem as AbstractSystem
+from .systems import Car as Car
+from .systems import Snakeboard as Snakeboard
+
+try:
+    __version__ = version("ldap_jax")
+except PackageNotFoundError:  # pragma: no cover
+    __version__ = "0.0.0"

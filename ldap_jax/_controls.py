@@ -1,0 +1,113 @@
+"""Control signals: sinusoid sums (gaits) and sampled sequences (discrete optimal control).
+
+A control is a pytree mapping a time ``t`` (scalar) to the values of its channels, shape
+``(n_channels,)``. Which physical input a channel drives is the system's business
+(:meth:`ldap_jax.systems.AbstractSystem.inputs`).
+"""
+
+from __future__ import annotations
+
+import abc
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float
+
+__all__ = ["AbstractControls", "Sinusoids", "Sampled"]
+
+
+def _float_array(x: ArrayLike) -> Array:
+    x = jnp.asarray(x)
+    if not jnp.issubdtype(x.dtype, jnp.floating):
+        x = x.astype(jnp.result_type(float))
+    return x
+
+
+class AbstractControls(eqx.Module):
+    """A time-dependent control: ``controls(t) -> (n_channels,)``."""
+
+    @property
+    @abc.abstractmethod
+    def n_channels(self) -> int: ...
+
+    @abc.abstractmethod
+    def __call__(self, t: ArrayLike) -> Float[Array, " n_channels"]: ...
+
+    def derivative(self, t: ArrayLike) -> Float[Array, " n_channels"]:
+        """``d/dt controls(t)`` by forward-mode autodiff."""
+        t = jnp.asarray(t)
+        return jax.jvp(self.__call__, (t,), (jnp.ones_like(t),))[1]
+
+
+class Sinusoids(AbstractControls):
+    """Sums of sinusoids: channel ``c`` is ``sum_j A[c, j] sin(W[c, j] t + P[c, j])``.
+
+    Args:
+        amplitude: ``A``, shape (n_channels, n_terms).
+        frequency: ``W`` (rad/s), same shape.
+        phase: ``P`` (rad), same shape.
+
+    Example:
+        >>> ctl = Sinusoids(amplitude=[[0.1], [0.05]], frequency=[[1.0], [2.0]], phase=[[0.0], [0.3]])
+        >>> ctl(0.5).shape
+        (2,)
+    """
+
+    amplitude: Float[Array, "n_channels n_terms"] = eqx.field(converter=_float_array)
+    frequency: Float[Array, "n_channels n_terms"] = eqx.field(converter=_float_array)
+    phase: Float[Array, "n_channels n_terms"] = eqx.field(converter=_float_array)
+
+    def __check_init__(self):
+        shapes = {n: getattr(self, n).shape for n in ("amplitude", "frequency", "phase")}
+        for name, shape in shapes.items():
+            if len(shape) != 2:
+                raise ValueError(f"Sinusoids: {name!r} must have shape (n_channels, n_terms), got {shape}")
+        if len(set(shapes.values())) != 1:
+            raise ValueError(f"Sinusoids: amplitude, frequency and phase shapes differ: {shapes}")
+
+    @property
+    def n_channels(self) -> int:
+        return self.amplitude.shape[0]
+
+    def __call__(self, t):
+        t = jnp.asarray(t, self.amplitude.dtype)
+        return jnp.sum(self.amplitude * jnp.sin(self.frequency * t + self.phase), axis=-1)
+
+
+class Sampled(AbstractControls):
+    """Control values at uniformly spaced times, linearly interpolated in between.
+
+    ``values[k]`` is the control at ``t_k = t0 + k dt`` with ``dt = (t_final - t0) / (K - 1)``;
+    outside ``[t0, t_final]`` the end values are held. Sampled with the same number of steps as
+    :func:`ldap_jax.simulate`, the values are exactly the discrete controls at the step times
+    (discrete optimal control).
+
+    Args:
+        values: shape (K, n_channels), K >= 2.
+        t_final: time of the last sample.
+        t0: time of the first sample.
+    """
+
+    values: Float[Array, "K n_channels"] = eqx.field(converter=_float_array)
+    t_final: Array = eqx.field(converter=_float_array)
+    t0: Array = eqx.field(converter=_float_array, default=0.0)
+
+    def __check_init__(self):
+        if self.values.ndim != 2 or self.values.shape[0] < 2:
+            raise ValueError(
+                f"Sampled: 'values' must have shape (K >= 2, n_channels), got {self.values.shape}"
+            )
+
+    @property
+    def n_channels(self) -> int:
+        return self.values.shape[1]
+
+    def __call__(self, t):
+        n = self.values.shape[0]
+        t = jnp.asarray(t, self.values.dtype)
+        s = (t - self.t0) / (self.t_final - self.t0) * (n - 1)
+        s = jnp.clip(s, 0.0, n - 1)
+        i = jnp.clip(jnp.floor(s).astype(int), 0, n - 2)
+        w = s - i.astype(s.dtype)
+        return (1 - w) * self.values[i] + w * self.values[i + 1]

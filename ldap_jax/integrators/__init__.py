@@ -1,0 +1,10 @@
+"""Integrators: each a pure ``init``/``step`` pair over a system description."""
+
+from ._base import AbstractIntegrator as AbstractIntegrator
+from ._base import StepInfo as StepInfo
+from ._rdp import RDP as RDP
+from ._rdp import RDPState as RDPState
+from ._runge_kutta import RK2 as RK2
+from ._runge_kutta import RK4 as RK4
+from ._runge_kutta import AbstractRungeKutta as AbstractRungeKutta
+from ._runge_kutta import ButcherTableau as ButcherTableau

@@ -1,0 +1,57 @@
+"""The integrator interface: pure ``init`` / ``step`` over a system description."""
+
+from __future__ import annotations
+
+import abc
+from typing import Any, ClassVar, NamedTuple
+
+import equinox as eqx
+from jaxtyping import Array, Bool, Float
+
+__all__ = ["AbstractIntegrator", "StepInfo"]
+
+
+class StepInfo(NamedTuple):
+    """What one step reports.
+
+    Attributes:
+        residual: norm of the step's residual after the solve (0 for explicit schemes
+            with no implicit equation), or the discrete momentum residual (21) for RDP.
+        converged: False when an implicit solve did not meet its tolerance.
+        iterations: Newton iterations used (0 for explicit steps).
+    """
+
+    residual: Float[Array, ""]
+    converged: Bool[Array, ""]
+    iterations: Array
+
+
+class AbstractIntegrator(eqx.Module):
+    """A one-step scheme on a :class:`~ldap_jax.systems.AbstractSystem`.
+
+    ``init(system, h, q0, qdot0, c0)`` builds the scheme's state from the continuous initial
+    condition; ``step(system, h, state, c)`` returns ``(state_next, (q_k, qdot_k), info)``:
+    the configuration and velocity estimate at the current node ``t_k`` and the state at
+    ``t_{k+1}``. ``c`` holds the control channel values at ``t_k + c_j h`` for the fractions
+    ``c_j`` in :attr:`control_nodes`, shape ``(len(control_nodes), n_channels)``.
+    """
+
+    @property
+    @abc.abstractmethod
+    def control_nodes(self) -> tuple[float, ...]: ...
+
+    @property
+    @abc.abstractmethod
+    def order(self) -> int: ...
+
+    implicit: ClassVar[bool] = False
+
+    @abc.abstractmethod
+    def init(self, system, h, q0, qdot0, c0) -> Any: ...
+
+    @abc.abstractmethod
+    def step(self, system, h, state, c) -> tuple[Any, tuple[Array, Array], StepInfo]: ...
+
+    @abc.abstractmethod
+    def configuration(self, state) -> Array:
+        """The configuration ``q_k`` held by a state."""

@@ -1,0 +1,7 @@
+"""System descriptions: the reduced and full views of a nonholonomic system on M x SE(2)."""
+
+from ._base import AbstractSystem as AbstractSystem
+from ._base import body_velocity as body_velocity
+from ._base import spatial_velocity as spatial_velocity
+from ._car import Car as Car
+from ._snakeboard import Snakeboard as Snakeboard
