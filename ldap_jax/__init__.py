@@ -26,6 +26,9 @@ from .lie import SE2 as SE2
 from .systems import AbstractSystem as AbstractSystem
 from .systems import Car as Car
 from .systems import Snakeboard as Snakeboard
+from .systems import System as System
+from .systems import chaplygin_sleigh as chaplygin_sleigh
+from .systems import roller_racer as roller_racer
 
 try:
     __version__ = version("ldap_jax")

@@ -61,14 +61,17 @@ class Sinusoids(AbstractControls):
     def __check_init__(self):
         shapes = {n: getattr(self, n).shape for n in ("amplitude", "frequency", "phase")}
         for name, shape in shapes.items():
-            if len(shape) != 2:
-                raise ValueError(f"Sinusoids: {name!r} must have shape (n_channels, n_terms), got {shape}")
+            if len(shape) < 2:
+                raise ValueError(
+                    f"Sinusoids: {name!r} must have shape (n_channels, n_terms) (leading batch axes "
+                    f"allowed, for vmap), got {shape}"
+                )
         if len(set(shapes.values())) != 1:
             raise ValueError(f"Sinusoids: amplitude, frequency and phase shapes differ: {shapes}")
 
     @property
     def n_channels(self) -> int:
-        return self.amplitude.shape[0]
+        return self.amplitude.shape[-2]
 
     def __call__(self, t):
         t = jnp.asarray(t, self.amplitude.dtype)
@@ -94,14 +97,14 @@ class Sampled(AbstractControls):
     t0: Array = eqx.field(converter=_float_array, default=0.0)
 
     def __check_init__(self):
-        if self.values.ndim != 2 or self.values.shape[0] < 2:
+        if self.values.ndim < 2 or self.values.shape[-2] < 2:
             raise ValueError(
                 f"Sampled: 'values' must have shape (K >= 2, n_channels), got {self.values.shape}"
             )
 
     @property
     def n_channels(self) -> int:
-        return self.values.shape[1]
+        return self.values.shape[-1]
 
     def __call__(self, t):
         n = self.values.shape[0]

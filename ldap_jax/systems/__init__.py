@@ -4,4 +4,7 @@ from ._base import AbstractSystem as AbstractSystem
 from ._base import body_velocity as body_velocity
 from ._base import spatial_velocity as spatial_velocity
 from ._car import Car as Car
+from ._description import System as System
+from ._examples import chaplygin_sleigh as chaplygin_sleigh
+from ._examples import roller_racer as roller_racer
 from ._snakeboard import Snakeboard as Snakeboard

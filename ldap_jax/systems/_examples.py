@@ -1,0 +1,118 @@
+"""Two systems the paper does not treat, written only through the public :class:`System`."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+
+from ._description import System
+
+__all__ = ["chaplygin_sleigh", "roller_racer"]
+
+
+def _positive(**kwargs) -> dict:
+    out = {}
+    for name, value in kwargs.items():
+        arr = np.asarray(value)
+        if not np.all(arr > 0):
+            raise ValueError(f"parameter {name!r} must be positive, got {value}")
+        out[name] = jnp.asarray(value, dtype=jnp.result_type(float))
+    return out
+
+
+def chaplygin_sleigh(m: float = 1.0, I: float = 0.2, a: float = 0.3) -> System:  # noqa: E741
+    r"""The Chaplygin sleigh: a rigid body on a knife edge, ``Q = SE(2)``, no shape.
+
+    ``g = (x, y, theta)`` is the pose of the knife edge's contact point ``P``; the centre of mass
+    sits at distance ``a`` ahead of ``P`` on the body axis. With ``xi = (omega, v_x, v_y)`` at ``P``::
+
+        l(xi) = (m v_x^2 + m (v_y + a omega)^2 + I omega^2) / 2,     constraint  v_y = 0,
+
+    so both remaining symmetry directions are constrained symmetries,
+    ``e(r) = [(1, 0, 0), (0, 1, 0)]`` (``c = 2``), and the dynamics is the momentum equation (7)
+    alone: ``v_x_dot = a omega^2``, ``(I + m a^2) omega_dot = -m a v_x omega``. Energy is conserved.
+
+    Args:
+        m: mass. I: yaw inertia about the centre of mass. a: distance from the contact point to
+            the centre of mass. All positive.
+    """
+    p = _positive(m=m, I=I, a=a)
+
+    def lagrangian(p, r, u, xi):
+        return 0.5 * (p["m"] * xi[1] ** 2 + p["m"] * (xi[2] + p["a"] * xi[0]) ** 2 + p["I"] * xi[0] ** 2)
+
+    def connection(p, r):
+        return jnp.zeros((3, 0), r.dtype)
+
+    def symmetry_basis(p, r):
+        return jnp.eye(3, 2, dtype=r.dtype)
+
+    def constraints(p, r):
+        return jnp.array([[0.0, 0.0, 1.0]], dtype=r.dtype)
+
+    return System(0, lagrangian, connection, symmetry_basis, constraints, params=p)
+
+
+def roller_racer(
+    m1: float = 1.0,
+    I1: float = 0.1,  # noqa: E741
+    m2: float = 0.5,
+    I2: float = 0.05,  # noqa: E741
+    d1: float = 0.5,
+    d2: float = 0.3,
+    k: float = 1.0,
+) -> System:
+    r"""The roller racer: two wheeled bodies joined by a torque-driven, spring-loaded hinge.
+
+    ``g = (x, y, theta)`` is the pose of the front body at its wheel axle (its centre of mass).
+    The hinge sits ``d1`` ahead of it; the rear body, at relative angle ``phi`` (the shape), has
+    its wheel axle (and centre of mass) ``d2`` behind the hinge. Neither axle slips sideways.
+    In the front body's frame, with ``xi = (omega, v_x, v_y)``, the rear axle moves with
+    ``v_2 = (v_x + d2 (omega + phidot) sin phi, v_y + d1 omega - d2 (omega + phidot) cos phi)``, and::
+
+        l = (m1 (v_x^2 + v_y^2) + I1 omega^2 + m2 |v_2|^2 + I2 (omega + phidot)^2 - k phi^2) / 2,
+        constraints:  v_y = 0,   (d1 cos phi - d2) omega - sin(phi) v_x + cos(phi) v_y - d2 phidot = 0.
+
+    Constrained symmetry ``e_1(phi) = (sin phi, d1 cos phi - d2, 0)`` (``c = 1``); horizontal lift
+    ``A(phi) = -d2 (d1 cos phi - d2, -sin phi, 0) / ((d1 cos phi - d2)^2 + sin^2 phi)`` (regular for
+    ``d1 != d2``). The control is the hinge torque ``f_phi``; oscillating it propels the racer (a
+    snakeboard-like gait with a different connection, and a potential ``k phi^2 / 2`` so that
+    ``d_r l != 0``).
+
+    Args:
+        m1, I1: mass and yaw inertia of the front body. m2, I2: of the rear body.
+        d1, d2: front axle to hinge, hinge to rear axle (``d1 != d2``). k: hinge stiffness.
+    """
+    p = _positive(m1=m1, I1=I1, m2=m2, I2=I2, d1=d1, d2=d2, k=k)
+    if np.isclose(float(d1), float(d2)):
+        raise ValueError(
+            f"parameters 'd1' and 'd2' must differ (the lift is singular at phi = 0), got {d1}, {d2}"
+        )
+
+    def lagrangian(p, r, u, xi):
+        phi, phidot = r[0], u[0]
+        om, vx, vy = xi
+        w2 = om + phidot
+        v2x = vx + p["d2"] * w2 * jnp.sin(phi)
+        v2y = vy + p["d1"] * om - p["d2"] * w2 * jnp.cos(phi)
+        kinetic = p["m1"] * (vx**2 + vy**2) + p["I1"] * om**2 + p["m2"] * (v2x**2 + v2y**2) + p["I2"] * w2**2
+        return 0.5 * (kinetic - p["k"] * phi**2)
+
+    def connection(p, r):
+        phi = r[0]
+        c = p["d1"] * jnp.cos(phi) - p["d2"]
+        den = c**2 + jnp.sin(phi) ** 2
+        return (-p["d2"] / den * jnp.stack([c, -jnp.sin(phi), jnp.zeros_like(phi)]))[:, None]
+
+    def symmetry_basis(p, r):
+        phi = r[0]
+        return jnp.stack([jnp.sin(phi), p["d1"] * jnp.cos(phi) - p["d2"], jnp.zeros_like(phi)])[:, None]
+
+    def constraints(p, r):
+        phi = r[0]
+        z, o = jnp.zeros_like(phi), jnp.ones_like(phi)
+        return jnp.array(
+            [[z, z, o, z], [p["d1"] * jnp.cos(phi) - p["d2"], -jnp.sin(phi), jnp.cos(phi), -p["d2"] * o]]
+        )
+
+    return System(1, lagrangian, connection, symmetry_basis, constraints, params=p, shape_names=("phi",))

@@ -1,0 +1,257 @@
+"""Bring your own system: the general RDP step and the derived continuous equations."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import fitted_order, index, maneuvers, systems
+
+import ldap_jax as lj
+from ldap_jax.integrators import RDP
+
+SYSTEMS = systems()
+
+
+def user_car(car):
+    """The car written only through the public description (no closed form)."""
+    p = dict(m=car.m, I=car.I, K=car.K, rho=car.rho, l=car.l)
+    return lj.System(
+        2,
+        lambda p, r, u, xi: (
+            0.5 * (p["I"] * u[0] ** 2 + p["K"] * xi[0] ** 2 + p["m"] * (xi[1] ** 2 + xi[2] ** 2))
+        ),
+        lambda p, r: jnp.array([[-p["rho"] * r[1] / p["l"], 0.0], [-p["rho"], 0.0], [0.0, 0.0]]),
+        params=p,
+        kinematic=(False, True),
+    )
+
+
+def user_snakeboard(sb):
+    p = dict(m=sb.m, l=sb.l, I=sb.I, J=sb.J)
+
+    def lagrangian(p, r, u, xi):
+        return 0.5 * (
+            p["I"] * u[0] ** 2
+            + 2 * p["I"] * u[0] * xi[0]
+            + 2 * p["J"] * u[1] ** 2
+            + p["m"] * p["l"] ** 2 * xi[0] ** 2
+            + p["m"] * (xi[1] ** 2 + xi[2] ** 2)
+        )
+
+    def connection(p, r):
+        s = jnp.sin(r[1])
+        return jnp.array(
+            [
+                [p["I"] * s**2 / (p["m"] * p["l"] ** 2), 0.0],
+                [-p["I"] * jnp.sin(2 * r[1]) / (2 * p["m"] * p["l"]), 0.0],
+                [0.0, 0.0],
+            ]
+        )
+
+    def basis(p, r):
+        return jnp.stack([jnp.sin(2 * r[1]), -2 * p["l"] * jnp.cos(r[1]) ** 2, 0.0])[:, None]
+
+    return lj.System(2, lagrangian, connection, basis, params=p, singularity=lambda p, r: jnp.cos(r[1]))
+
+
+USER = {"car": user_car(SYSTEMS["car"]), "snakeboard": user_snakeboard(SYSTEMS["snakeboard"])}
+
+
+@pytest.mark.parametrize("name", list(SYSTEMS))
+def test_derived_continuous_equations_equal_hand_written(name):
+    model, user = SYSTEMS[name], USER[name]
+    rng = np.random.default_rng(0)
+    for _ in range(10):
+        q = jnp.asarray(rng.normal(size=5))
+        c = jnp.asarray(rng.normal(size=2))
+        f, u_kin = model.inputs(c)
+        qdot = model.qdot_from_velocities(q, jnp.asarray(rng.normal(size=model.n_velocities)), u_kin)
+        v = user.velocities_from_qdot(q, qdot)
+        np.testing.assert_allclose(user.qdot_from_velocities(q, v, u_kin), qdot, atol=1e-14)
+        qd_user = jax.jvp(
+            user.qdot_from_velocities,
+            (q, v, u_kin),
+            (qdot, user.velocity_dynamics(q, v, f, u_kin), jnp.zeros(2)),
+        )[1]
+        vm = model.velocities_from_qdot(q, qdot)
+        qd_model = jax.jvp(
+            model.qdot_from_velocities,
+            (q, vm, u_kin),
+            (qdot, model.velocity_dynamics(q, vm, f, u_kin), jnp.zeros(2)),
+        )[1]
+        np.testing.assert_allclose(qd_user, qd_model, atol=1e-12)
+
+
+@pytest.mark.parametrize("alpha", [0.0, 0.5, 1.0])
+@pytest.mark.parametrize("retraction", ["exp", "cayley"])
+def test_general_step_on_user_description_equals_closed_form(alpha, retraction):
+    """1000-step trajectories of the user-described car and snakeboard through the general
+    Newton step match the hand-derived closed forms to 1e-10."""
+    for name, model in SYSTEMS.items():
+        q0, qdot0, ctl = index(maneuvers(model, 1, seed=31), 0)
+        kw = dict(t_final=20.0, n_steps=1000)
+        integrator = RDP(alpha=alpha, retraction=retraction)
+        closed = lj.simulate(model, q0, qdot0, ctl, integrator=integrator, **kw)
+        general = lj.simulate(USER[name], q0, qdot0, ctl, integrator=integrator, **kw)
+        assert not bool(closed.failed) and not bool(general.failed)
+        assert bool(jnp.all(general.converged))
+        np.testing.assert_allclose(general.q, closed.q, rtol=0, atol=1e-10)
+
+
+def test_sign_of_the_connection_term():
+    """(23)'s sign converges to the continuous solution; (25) as printed (+A) does not."""
+
+    class PrintedSign(RDP):
+        def _residual_parts(self, system, h, r, u, xi, b, mu_in):
+            hor, vert = super()._residual_parts(system, h, r, u, xi, b, mu_in)
+            a = jnp.asarray(self.alpha, r.dtype)
+            _, _, mu = jax.grad(system.reduced_lagrangian, argnums=(0, 1, 2))(r + a * h * u, u, xi)
+            jump = self._dtau(h * xi).T @ mu - mu_in
+            return hor + 2 * system.connection(r).T @ jump, vert
+
+    car = USER["car"]
+    q0, qdot0, ctl = index(maneuvers(SYSTEMS["car"], 1, seed=3), 0)
+    ref = lj.reference(car, q0, qdot0, ctl, jnp.array([0.0, 4.0]))
+    errs = {"(23)": [], "(25) printed": []}
+    for n in (100, 200, 400):
+        for label, integ in (("(23)", RDP()), ("(25) printed", PrintedSign(solver="newton"))):
+            traj = lj.simulate(car, q0, qdot0, ctl, t_final=4.0, n_steps=n, integrator=integ)
+            errs[label].append(float(jnp.linalg.norm(traj.q[-1, :3] - ref.q[-1, :3])))
+    print(errs)
+    assert fitted_order([1, 0.5, 0.25], errs["(23)"]) > 1.9
+    assert min(errs["(25) printed"]) > 100 * errs["(23)"][-1]
+    assert errs["(25) printed"][-1] > 0.5 * errs["(25) printed"][0]  # no convergence
+
+
+def _sleigh_case():
+    sleigh = lj.chaplygin_sleigh(m=1.0, I=0.2, a=0.3)
+    ctl = lj.Sinusoids(amplitude=jnp.zeros((0, 1)), frequency=jnp.zeros((0, 1)), phase=jnp.zeros((0, 1)))
+    q0 = jnp.array([0.0, 0.0, 0.4])
+    qdot0 = sleigh.qdot_from_velocities(q0, jnp.array([1.5, 0.5]), jnp.zeros(0))
+    return sleigh, q0, qdot0, ctl
+
+
+def _racer_case(seed=0):
+    racer = lj.roller_racer()
+    rng = np.random.default_rng(seed)
+    ctl = lj.Sinusoids(
+        amplitude=[[rng.uniform(0.2, 0.5), rng.uniform(0.0, 0.2)]],
+        frequency=[[rng.uniform(1.5, 3.0), rng.uniform(0.5, 1.5)]],
+        phase=[[rng.uniform(0, 6), 0.0]],
+    )
+    q0 = jnp.array([0.0, 0.0, rng.uniform(-3, 3), rng.uniform(-0.3, 0.3)])
+    qdot0 = racer.qdot_from_velocities(q0, jnp.asarray(rng.uniform(-0.3, 0.3, size=2)), jnp.zeros(1))
+    return racer, q0, qdot0, ctl
+
+
+@pytest.mark.parametrize("case", ["sleigh", "racer"])
+def test_new_systems_reduced_equals_full_lagrange_dalembert(case):
+    system = (_sleigh_case if case == "sleigh" else _racer_case)()[0]
+    rng = np.random.default_rng(2)
+    for _ in range(10):
+        q = jnp.asarray(rng.normal(size=system.n_config))
+        v = jnp.asarray(rng.normal(size=system.n_velocities))
+        f = jnp.asarray(rng.normal(size=system.n_shape))
+        zero = jnp.zeros(system.n_shape)
+        qdot = system.qdot_from_velocities(q, v, zero)
+        assert float(system.constraint_residual(q, qdot)) < 1e-14
+        qddot = jax.jvp(
+            system.qdot_from_velocities, (q, v, zero), (qdot, system.velocity_dynamics(q, v, f, zero), zero)
+        )[1]
+        np.testing.assert_allclose(qddot, system.full_acceleration(q, qdot, f, zero)[0], atol=1e-12)
+
+
+@pytest.mark.parametrize("case", ["sleigh", "racer"])
+def test_new_systems_converge_with_order_two(case):
+    system, q0, qdot0, ctl = (_sleigh_case if case == "sleigh" else _racer_case)()
+    t_final = 6.0
+    ref = lj.reference(system, q0, qdot0, ctl, jnp.linspace(0.0, t_final, 41))
+    for integrator, order in ((RDP(), 2), (RDP(retraction="cayley", dtau_order=None), 2), (lj.RK4(), 4)):
+        errs = []
+        ns = (40, 80, 160)
+        for n in ns:
+            traj = lj.simulate(system, q0, qdot0, ctl, t_final=t_final, n_steps=n, integrator=integrator)
+            assert not bool(traj.failed)
+            q = traj.q[:: n // 40]
+            errs.append(float(jnp.max(jnp.linalg.norm(q[:, :3] - ref.q[:, :3], axis=1))))
+        p = fitted_order([t_final / n for n in ns], errs)
+        print(case, integrator, errs, p)
+        assert p > order - 0.15
+
+
+def test_sleigh_energy_and_momentum_equation():
+    """The unforced sleigh conserves energy; RDP keeps it over 10^4 steps and satisfies its
+    discrete momentum equations (21) to round-off."""
+    sleigh, q0, qdot0, ctl = _sleigh_case()
+    traj = lj.simulate(sleigh, q0, qdot0, ctl, t_final=200.0, n_steps=10_000)
+    assert not bool(traj.failed)
+    e = np.asarray(traj.energy)
+    assert np.abs(e - e[0]).max() < 1e-6 * e[0]
+    assert float(jnp.max(traj.step_residual)) < 1e-12
+    # the continuous momentum is not conserved: the sleigh's momentum changes
+    assert float(jnp.ptp(traj.momentum[:, 0])) > 1e-2
+
+
+def test_roller_racer_momentum_and_energy():
+    racer, q0, qdot0, ctl = _racer_case(1)
+    traj = lj.simulate(racer, q0, qdot0, ctl, t_final=20.0, n_steps=2000)
+    assert not bool(traj.failed)
+    assert float(jnp.max(traj.step_residual)) < 1e-11
+    assert float(jnp.max(jnp.abs(traj.energy_balance))) < 1e-2 * float(jnp.max(jnp.abs(traj.work)) + 1e-3)
+    assert (
+        abs(float(traj.q[-1, 0] - traj.q[0, 0])) + abs(float(traj.q[-1, 1] - traj.q[0, 1])) > 0.1
+    )  # it moves
+
+
+def test_gradient_through_general_implicit_step():
+    racer, q0, qdot0, ctl = _racer_case(2)
+
+    @jax.jit
+    def loss(amp):
+        c = lj.Sinusoids(amplitude=amp, frequency=ctl.frequency, phase=ctl.phase)
+        traj = lj.simulate(racer, q0, qdot0, c, t_final=3.0, n_steps=150, integrator=RDP(dtau_order=None))
+        return jnp.sum(traj.q[-1, :3] ** 2)
+
+    amp = ctl.amplitude
+    grad = np.asarray(jax.grad(loss)(amp)).ravel()
+    eps = 1e-6
+    fd = []
+    for i in range(amp.size):
+        e = jnp.zeros(amp.size).at[i].set(eps).reshape(amp.shape)
+        fd.append((float(loss(amp + e)) - float(loss(amp - e))) / (2 * eps))
+    np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-5 * np.abs(fd).max())
+
+
+def test_vmap_over_64_maneuvers_equals_loop_for_user_system():
+    racer = lj.roller_racer()
+    keys = jax.random.split(jax.random.PRNGKey(0), 64)
+    amps = jax.vmap(lambda k: jax.random.uniform(k, (1, 1), minval=0.1, maxval=0.5))(keys)
+    ctl = lj.Sinusoids(amplitude=amps, frequency=jnp.full((64, 1, 1), 2.0), phase=jnp.zeros((64, 1, 1)))
+    q0 = jnp.zeros(4)
+    qdot0 = jnp.zeros(4)
+    run = jax.jit(lambda c: lj.simulate(racer, q0, qdot0, c, t_final=2.0, n_steps=50).q)
+    batched = jax.vmap(run)(ctl)
+    for i in range(0, 64, 7):
+        np.testing.assert_allclose(batched[i], run(index(ctl, i)), rtol=1e-12, atol=1e-13)
+
+
+def test_inconsistent_shapes_name_the_function():
+    def lag(r, u, xi):
+        return 0.5 * jnp.sum(xi**2) + 0.5 * jnp.sum(u**2)
+
+    with pytest.raises(ValueError, match="connection"):
+        lj.System(2, lag, lambda r: jnp.zeros((3, 3)))
+    with pytest.raises(ValueError, match="symmetry_basis"):
+        lj.System(2, lag, lambda r: jnp.zeros((3, 2)), lambda r: jnp.zeros((2, 1)))
+    with pytest.raises(ValueError, match="lagrangian"):
+        lj.System(2, lambda r, u, xi: xi, lambda r: jnp.zeros((3, 2)))
+    with pytest.raises(ValueError, match="constraints"):
+        lj.System(
+            2, lag, lambda r: jnp.zeros((3, 2)), lambda r: jnp.zeros((3, 1)), lambda r: jnp.zeros((2, 4))
+        )
+    with pytest.raises(ValueError, match="'kinematic'"):
+        lj.System(2, lag, lambda r: jnp.zeros((3, 2)), kinematic=(True,))
+    with pytest.raises(ValueError, match="'d1' and 'd2'"):
+        lj.roller_racer(d1=0.4, d2=0.4)
+    with pytest.raises(ValueError, match="'a'"):
+        lj.chaplygin_sleigh(a=-1.0)
