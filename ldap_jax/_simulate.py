@@ -9,7 +9,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._controls import AbstractControls
-from .integrators import RDP, AbstractIntegrator
+from .integrators import RDP, AbstractIntegrator, _fast
 from .systems import AbstractSystem
 
 __all__ = ["simulate", "Trajectory", "RESULTS"]
@@ -130,6 +130,7 @@ def simulate(
     checkpoint: bool = False,
     throw: bool = False,
     check_constraints: bool = True,
+    fast_path: bool = True,
 ) -> Trajectory:
     """Integrate ``system`` from ``(q0, qdot0)`` over ``[t0, t_final]`` in ``n_steps`` steps.
 
@@ -152,6 +153,10 @@ def simulate(
             memory O(N) states instead of O(N) step internals.
         throw: raise (inside jit, via ``eqx.error_if``) if the integration failed.
         check_constraints: raise when ``qdot0`` violates the constraints.
+        fast_path: use the specialised kernel where one exists (``RDP`` with the closed form on
+            ``Car`` and ``Snakeboard``: structure-of-arrays state, trigonometric values computed
+            once and reused, diagnostics inside the scan). It computes the same trajectory as
+            the general path to round-off; ``False`` forces the general path.
 
     Returns:
         :class:`Trajectory` with ``t`` (N+1,), ``q`` and ``qdot`` (N+1, d), diagnostics and a
@@ -191,12 +196,25 @@ def simulate(
         checkpoint=checkpoint,
         throw=throw,
         check_constraints=check_constraints,
+        fast_path=bool(fast_path),
     )
 
 
 @eqx.filter_jit
 def _simulate(
-    system, q0, qdot0, controls, t0, t_final, integrator, *, n_steps, checkpoint, throw, check_constraints
+    system,
+    q0,
+    qdot0,
+    controls,
+    t0,
+    t_final,
+    integrator,
+    *,
+    n_steps,
+    checkpoint,
+    throw,
+    check_constraints,
+    fast_path=True,
 ):
     dtype = _common_dtype(q0, qdot0)
     q0 = jnp.asarray(q0, dtype)
@@ -220,6 +238,30 @@ def _simulate(
         )
 
     t_nodes = t0 + h * jnp.arange(n_steps + 1, dtype=dtype)
+    if fast_path and _fast.supports(system, integrator):
+        out = _fast.rdp_rollout(system, integrator, q0, qdot0, controls, t0, h, n_steps, checkpoint)
+        work = jnp.concatenate(
+            [jnp.zeros((1,), dtype), jnp.cumsum(0.5 * h * (out.power[1:] + out.power[:-1]))]
+        )
+        traj = Trajectory(
+            t=t_nodes,
+            q=out.q,
+            qdot=out.qdot,
+            energy=out.energy,
+            work=work,
+            momentum=out.momentum,
+            constraint_residual=out.constraint_residual,
+            step_residual=out.step_residual,
+            converged=out.converged,
+            result=out.result,
+            failure_index=out.failure_index,
+        )
+        if throw:
+            traj = eqx.error_if(
+                traj, out.result != 0, "simulate: the integration failed (see Trajectory.result)"
+            )
+        return traj
+
     fractions = jnp.asarray(integrator.control_nodes, dtype)
     stage_t = t_nodes[:, None] + h * fractions[None, :]
     cvals = jax.vmap(jax.vmap(controls))(stage_t)  # (N+1, S, n_channels)
