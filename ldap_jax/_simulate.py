@@ -9,6 +9,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._controls import AbstractControls
+from ._scan import check_checkpoint, checkpointed_scan
 from .integrators import RDP, AbstractIntegrator, _fast
 from .systems import AbstractSystem
 
@@ -149,8 +150,10 @@ def simulate(
         n_steps: number of steps N (static: each new N compiles once).
         integrator: default ``RDP(alpha=0.5, retraction="exp")``.
         t0: start time.
-        checkpoint: rematerialise each step in reverse mode (``jax.checkpoint`` on the scan body):
-            memory O(N) states instead of O(N) step internals.
+        checkpoint: memory policy for reverse mode: ``False`` (store every step's internals),
+            ``True``/``"step"`` (``jax.checkpoint`` on the scan body: O(N) states), ``"sqrt"``
+            (nested: ~sqrt(N) checkpointed chunks of ~sqrt(N) steps, O(sqrt N) states for about one
+            extra forward pass), or an integer chunk length.
         throw: raise (inside jit, via ``eqx.error_if``) if the integration failed.
         check_constraints: raise when ``qdot0`` violates the constraints.
         fast_path: use the specialised kernel where one exists (``RDP`` with the closed form on
@@ -193,7 +196,7 @@ def simulate(
         t_final,
         integrator,
         n_steps=int(n_steps),
-        checkpoint=checkpoint,
+        checkpoint=check_checkpoint(checkpoint),
         throw=throw,
         check_constraints=check_constraints,
         fast_path=bool(fast_path),
@@ -292,10 +295,10 @@ def _simulate(
         out = (q_out, qdot_out, info.residual, info.converged)
         return (state_out, new_code, new_index, k + 1), out
 
-    if checkpoint:
-        body = jax.checkpoint(body)
     init = (state0, jnp.zeros((), jnp.int32), jnp.asarray(n_steps + 1, jnp.int32), jnp.zeros((), jnp.int32))
-    (_, code, index, _), (q, qdot, residual, converged) = jax.lax.scan(body, init, cvals)
+    (_, code, index, _), (q, qdot, residual, converged) = checkpointed_scan(
+        body, init, cvals, length=n_steps + 1, checkpoint=checkpoint
+    )
     # node 0 reports the given initial velocity. The last scan step only produced the velocity
     # estimate at t_N; a failure there leaves q_N valid but is still reported in `result`.
     qdot = qdot.at[0].set(qdot0)

@@ -115,19 +115,25 @@ def test_gradient_wrt_initial_state_and_parameters(name):
     assert abs(grad[0]) > 1e-8
 
 
-def test_checkpointed_gradient_equals_plain():
+@pytest.mark.parametrize("fast_path", [True, False], ids=["fast", "general"])
+def test_checkpointed_gradient_equals_plain(fast_path):
+    """Every rematerialisation policy (per step, nested sqrt(N) chunks, chunks of 7 steps that do
+    not divide N + 1) gives the same trajectory and gradient."""
     sb = SYSTEMS["snakeboard"]
     q0, qdot0, ctl = index(maneuvers(sb, 1, seed=9), 0)
 
     def loss(amp, checkpoint):
         c = lj.Sinusoids(amplitude=amp, frequency=ctl.frequency, phase=ctl.phase)
-        return jnp.sum(
-            lj.simulate(sb, q0, qdot0, c, t_final=5.0, n_steps=300, checkpoint=checkpoint).q[-1] ** 2
+        traj = lj.simulate(
+            sb, q0, qdot0, c, t_final=5.0, n_steps=300, checkpoint=checkpoint, fast_path=fast_path
         )
+        return jnp.sum(traj.q[-1] ** 2) + jnp.sum(traj.q[150] ** 2)
 
-    g1 = jax.grad(loss)(ctl.amplitude, False)
-    g2 = jax.grad(loss)(ctl.amplitude, True)
-    np.testing.assert_allclose(g1, g2, rtol=1e-12, atol=1e-14)
+    g_plain = jax.grad(loss)(ctl.amplitude, False)
+    for policy in (True, "sqrt", 7):
+        np.testing.assert_allclose(jax.grad(loss)(ctl.amplitude, policy), g_plain, rtol=1e-11, atol=1e-12)
+    with pytest.raises(ValueError, match="'checkpoint'"):
+        loss(ctl.amplitude, "binomial")
 
 
 @pytest.mark.parametrize("name", list(SYSTEMS))

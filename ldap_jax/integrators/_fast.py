@@ -33,6 +33,7 @@ import numpy as np
 from jaxtyping import Array
 
 from .._controls import Sinusoids
+from .._scan import checkpointed_scan
 from ..systems._car import Car
 from ..systems._snakeboard import Snakeboard
 
@@ -314,7 +315,7 @@ def _diagnostics(sys, q, qdot, trig, f):
 
 # ----------------------------------------------------------------------------- the rollout
 def rdp_rollout(
-    system, integrator, q0, qdot0, controls, t0, h, n_steps: int, checkpoint: bool, unroll: int = 1
+    system, integrator, q0, qdot0, controls, t0, h, n_steps: int, checkpoint=False, unroll: int = 1
 ):
     """The RDP rollout of :func:`ldap_jax.simulate` for ``Car``/``Snakeboard`` (closed form).
 
@@ -383,10 +384,10 @@ def rdp_rollout(
         out = (q_out, qdot_out, residual, converged) + diag
         return (state_out, new_code, new_index, k + 1), out
 
-    if checkpoint:
-        body = jax.checkpoint(body)
     init = (carry0, jnp.zeros((), jnp.int32), jnp.asarray(n_steps + 1, jnp.int32), jnp.zeros((), jnp.int32))
-    (_, code, index, _), outs = jax.lax.scan(body, init, (cn_now, cn_next), unroll=unroll)
+    (_, code, index, _), outs = checkpointed_scan(
+        body, init, (cn_now, cn_next), length=n_steps + 1, checkpoint=checkpoint, unroll=unroll
+    )
     q, qdot, residual, converged, energy, power, momentum, cres = outs
     # node 0 reports the given initial velocity (as the general path does)
     qdot = qdot.at[0].set(qdot0)
