@@ -8,6 +8,7 @@ differentiable rollouts.
 
 from importlib.metadata import PackageNotFoundError, version
 
+from . import control as control
 from . import integrators as integrators
 from . import lie as lie
 from . import systems as systems

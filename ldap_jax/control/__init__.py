@@ -1,0 +1,24 @@
+"""Differentiable discrete optimal control: costs on SE(2), control parameterizations,
+optax optimizer loops, and the car/snakeboard tasks (parallel parking, U-turn, gaits, reach)."""
+
+from ._costs import bound_penalty as bound_penalty
+from ._costs import effort_cost as effort_cost
+from ._costs import pose_error as pose_error
+from ._costs import terminal_pose_cost as terminal_pose_cost
+from ._costs import wrap_angle as wrap_angle
+from ._optimize import OptimizeResult as OptimizeResult
+from ._optimize import best_of as best_of
+from ._optimize import default_optimizer as default_optimizer
+from ._optimize import multistart as multistart
+from ._optimize import optimize as optimize
+from ._parameterizations import AbstractParameterization as AbstractParameterization
+from ._parameterizations import SampledControls as SampledControls
+from ._parameterizations import SinusoidGait as SinusoidGait
+from ._tasks import TASKS as TASKS
+from ._tasks import Task as Task
+from ._tasks import forward_gait as forward_gait
+from ._tasks import gradient_memory as gradient_memory
+from ._tasks import parallel_park as parallel_park
+from ._tasks import reach as reach
+from ._tasks import replay as replay
+from ._tasks import u_turn as u_turn

@@ -1,0 +1,132 @@
+"""Control parameterizations: per-step sampled controls and periodic gaits (sinusoid sums).
+
+A parameterization maps a pytree of free parameters (what the optimizer updates, O(1) by
+construction thanks to a per-channel ``scale``) to an :class:`~ldap_jax.AbstractControls`.
+"""
+
+from __future__ import annotations
+
+import abc
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
+
+from .._controls import AbstractControls, Sampled, Sinusoids
+
+__all__ = ["AbstractParameterization", "SampledControls", "SinusoidGait"]
+
+
+class AbstractParameterization(eqx.Module):
+    """Parameters -> controls."""
+
+    @abc.abstractmethod
+    def controls(self, params) -> AbstractControls: ...
+
+    @abc.abstractmethod
+    def init(self, key: PRNGKeyArray | None = None, *, amplitude: float = 0.3): ...
+
+
+class SampledControls(AbstractParameterization):
+    """Discrete optimal control: one value per channel at each step time ``t_k``.
+
+    ``params`` has shape ``(n_steps + 1, n_channels)``; the controls are
+    ``Sampled(params * scale, t_final, t0)``, so an integrator sampling at the step times sees
+    exactly ``c_k = params[k] * scale`` (stage times in between see linear interpolation).
+
+    Args:
+        t_final, t0: time interval.
+        n_steps: number of steps N of the rollout.
+        scale: per-channel scale (n_channels,).
+    """
+
+    t_final: Array
+    t0: Array
+    scale: Float[Array, " n"]
+    n_steps: int = eqx.field(static=True)
+
+    def __init__(self, t_final: ArrayLike, n_steps: int, scale: ArrayLike, *, t0: ArrayLike = 0.0):
+        if isinstance(n_steps, bool) or not isinstance(n_steps, int) or n_steps < 1:
+            raise ValueError(f"SampledControls: 'n_steps' must be a positive integer, got {n_steps!r}")
+        self.t_final = jnp.asarray(t_final, float)
+        self.t0 = jnp.asarray(t0, float)
+        self.scale = jnp.asarray(scale, float)
+        if self.scale.ndim != 1:
+            raise ValueError(f"SampledControls: 'scale' must be 1-d (n_channels,), got {self.scale.shape}")
+        self.n_steps = n_steps
+
+    def controls(self, params: Float[Array, "K n"]) -> Sampled:
+        return Sampled(params * self.scale[None, :], self.t_final, self.t0)
+
+    def values(self, params: Float[Array, "K n"]) -> Float[Array, "K n"]:
+        """Control values at the step times (for effort and bounds)."""
+        return params * self.scale[None, :]
+
+    def init(self, key=None, *, amplitude=0.3, n_modes: int = 3):
+        """A smooth initial guess: per channel a sum of ``n_modes`` sines ``sin(j pi t / T)`` with
+        coefficients ``amplitude * N(0, 1)`` (``key``), or ``amplitude * sin(pi t / T)`` ... for
+        ``key=None`` (a deterministic guess: channel ``c`` gets mode ``c + 1``)."""
+        n = self.scale.shape[0]
+        s = jnp.linspace(0.0, 1.0, self.n_steps + 1)
+        modes = jnp.stack([jnp.sin((j + 1) * jnp.pi * s) for j in range(n_modes)], axis=1)  # (K, M)
+        if key is None:
+            coef = jnp.zeros((n_modes, n)).at[jnp.arange(n) % n_modes, jnp.arange(n)].set(amplitude)
+        else:
+            coef = amplitude * jax.random.normal(key, (n_modes, n))
+        return modes @ coef
+
+
+class SinusoidGait(AbstractParameterization):
+    """Periodic gait: each channel a sum of sinusoids with free amplitudes, frequencies, phases.
+
+    ``params = (A, W, P)``, each (n_channels, n_terms); the controls are
+    ``Sinusoids(A * scale, W, P)``: channel ``c`` is ``sum_j scale_c A[c, j] sin(W[c, j] t + P[c, j])``.
+    With ``shared_frequency`` the frequencies are one parameter per term, shared by all
+    channels (a gait: rotor and steering at a common frequency, the relative phase free).
+
+    Args:
+        scale: per-channel amplitude scale (n_channels,).
+        n_terms: sinusoids per channel.
+        frequency: initial frequency of the first term (rad/s); term j starts at ``(j+1)`` times it.
+        shared_frequency: one frequency per term for all channels.
+    """
+
+    scale: Float[Array, " n"]
+    frequency: Array
+    n_terms: int = eqx.field(static=True)
+    shared_frequency: bool = eqx.field(static=True)
+
+    def __init__(
+        self, scale: ArrayLike, *, n_terms: int = 1, frequency: ArrayLike = 1.0, shared_frequency=True
+    ):
+        if isinstance(n_terms, bool) or not isinstance(n_terms, int) or n_terms < 1:
+            raise ValueError(f"SinusoidGait: 'n_terms' must be a positive integer, got {n_terms!r}")
+        self.scale = jnp.asarray(scale, float)
+        if self.scale.ndim != 1:
+            raise ValueError(f"SinusoidGait: 'scale' must be 1-d (n_channels,), got {self.scale.shape}")
+        self.frequency = jnp.asarray(frequency, float)
+        self.n_terms = n_terms
+        self.shared_frequency = shared_frequency
+
+    def controls(self, params) -> Sinusoids:
+        a, w, p = params
+        w = jnp.broadcast_to(w, a.shape)
+        return Sinusoids(a * self.scale[:, None], w, p)
+
+    def init(self, key=None, *, amplitude=0.3):
+        """Amplitudes ``amplitude`` (or ``amplitude * U(0.5, 1.5)`` per entry with ``key``),
+        frequencies ``(j + 1) * frequency``, phases ``pi/2`` apart between channels (or uniform
+        with ``key``)."""
+        n, m = self.scale.shape[0], self.n_terms
+        w = self.frequency * jnp.arange(1, m + 1, dtype=self.scale.dtype)
+        w = w[None, :] if self.shared_frequency else jnp.broadcast_to(w, (n, m))
+        if key is None:
+            a = jnp.full((n, m), amplitude)
+            p = jnp.broadcast_to(0.5 * jnp.pi * jnp.arange(n, dtype=self.scale.dtype)[:, None], (n, m))
+        else:
+            ka, kp, kw = jax.random.split(key, 3)
+            a = amplitude * jax.random.uniform(ka, (n, m), minval=0.5, maxval=1.5)
+            p = jax.random.uniform(kp, (n, m), minval=0.0, maxval=2 * jnp.pi)
+            w = w * jax.random.uniform(kw, w.shape, minval=0.8, maxval=1.25)
+        return (a, w, jnp.asarray(p))
