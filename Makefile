@@ -21,6 +21,10 @@ $(VENV)/.installed-dev: pyproject.toml | $(VENV)/bin/python
 # The main job at quick settings; figures and tables under results/.
 demo: $(VENV)/.installed
 	$(PY) scripts/demo.py --quick --out results
+	$(PY) scripts/sweep.py --quick --out results
+	$(PY) scripts/optimize.py --model car --task parallel_park --quick --out results
+	$(PY) scripts/optimize.py --model snakeboard --task forward_gait --quick --out results
+	$(PY) scripts/bench.py --quick --out results
 
 # The test suite (2 workers); pytest's "no tests collected" (exit 5) is a failure here.
 test: $(VENV)/.installed-dev
