@@ -20,6 +20,8 @@ from ._reference import reference as reference
 from ._simulate import RESULTS as RESULTS
 from ._simulate import Trajectory as Trajectory
 from ._simulate import simulate as simulate
+from .integrators import DLA as DLA
+from .integrators import GNI as GNI
 from .integrators import RDP as RDP
 from .integrators import RK2 as RK2
 from .integrators import RK4 as RK4

@@ -1,0 +1,182 @@
+"""The Monte Carlo study (ldap_jax.sweeps, scripts/sweep.py): rollouts equal simulate, a tiny
+study gives the CSV columns and finite numbers, and the sharded run equals the unsharded one."""
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import index, systems
+
+import ldap_jax as lj
+from ldap_jax import sweeps
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+SYSTEMS = systems()
+
+
+def test_maneuvers_reproducible_and_consistent():
+    sb = SYSTEMS["snakeboard"]
+    q0, qdot0, ctl = sweeps.sample_maneuvers(sb, 16, seed=7)
+    q0b, _, ctlb = sweeps.sample_maneuvers(sb, 16, seed=7)
+    np.testing.assert_array_equal(q0, q0b)
+    np.testing.assert_array_equal(ctl.amplitude, ctlb.amplitude)
+    # on the constraints, steering rate zero at t = 0, steering torque consistent with phidot(0)
+    res = jax.vmap(sb.constraint_residual)(q0, qdot0)
+    assert float(jnp.max(res)) < 1e-13
+    assert float(jnp.max(jnp.abs(qdot0[:, 4]))) == 0.0
+    assert float(jnp.max(jnp.abs(jnp.cos(ctl.phase[:, 1, 0])))) < 1e-15
+    assert float(jnp.max(jnp.abs(q0[:, 4]))) < 1.0  # |phi(0)| <= |phi_c| + b <= max_steer
+    with pytest.raises(ValueError, match="'n'"):
+        sweeps.sample_maneuvers(sb, 0, seed=0)
+
+
+@pytest.mark.parametrize("method", ["rdp", "dla"])
+def test_rollout_equals_simulate(method):
+    sb = SYSTEMS["snakeboard"]
+    man = sweeps.sample_maneuvers(sb, 3, seed=1)
+    integrator = sweeps.make_integrator(method)
+    q_out, code, _ = sweeps.batch_rollout(sb, integrator, man, 4.0, 80, n_out=20)
+    for i in range(3):
+        traj = lj.simulate(sb, *index(man, i), t_final=4.0, n_steps=80, integrator=integrator)
+        np.testing.assert_allclose(q_out[i], traj.q[::4], rtol=1e-12, atol=1e-12)
+        assert int(code[i]) == int(traj.result)
+
+
+def test_rollout_reports_failures_like_simulate():
+    sb = SYSTEMS["snakeboard"]
+    man = index(sweeps.sample_maneuvers(sb, 8, seed=5), slice(0, 8))
+    q_out, code, _ = sweeps.batch_rollout(sb, lj.DLA(), man, 60.0, 20, n_out=20)
+    for i in range(8):
+        traj = lj.simulate(sb, *index(man, i), t_final=60.0, n_steps=20, integrator=lj.DLA())
+        assert int(code[i]) == int(traj.result)
+    assert bool(np.any(code != 0))  # h = 3 s: some runs fail, and are reported
+
+
+def test_tiny_study(tmp_path):
+    config = sweeps.StudyConfig(
+        models=("snakeboard", "car"),
+        durations=(2.0,),
+        methods=("rdp", "gni", "dla", "rk2"),
+        resolutions=(20, 40),
+        runs=4,
+        repeats=1,
+        reference_check=2,
+    )
+    assert config.output_nodes == 20
+    rows = sweeps.run_study(config)
+    assert len(rows) == 2 * 4 * 2
+    path = tmp_path / "sweep.csv"
+    sweeps.write_csv(rows, path)
+    back = sweeps.read_csv(path)
+    assert list(back[0]) == list(sweeps.CSV_COLUMNS)
+    assert {r["method"] for r in back} == {"rdp", "gni", "dla", "rk2"}
+    for r in back:
+        for col in sweeps.CSV_COLUMNS:
+            if col not in ("model", "method"):
+                assert np.isfinite(r[col]), (col, r)
+        assert r["failures"] == 0 and r["blowup"] == 0
+        assert r["runtime_us"] > 0
+        assert r["reference_error"] < 1e-8
+        # second order methods at h = 0.05 over 2 s: small but nonzero errors
+        assert 0 < r["final_error_median"] < 1e-2
+    ratios = sweeps.runtime_ratios(back)
+    assert {r["ratio"] for r in ratios} == {"rdp/rk2", "gni/rdp", "dla/rdp"}
+    assert all(np.isfinite(r["equal_n"]) for r in ratios)
+    figs = sweeps.plot_study(back, tmp_path)
+    assert len(figs) == 2 and all(os.path.getsize(f) > 0 for f in figs)
+    assert "| rdp |" in sweeps.format_table(back)
+
+
+def test_config_errors():
+    with pytest.raises(ValueError, match="'methods'"):
+        sweeps.StudyConfig(methods=("rk5",))
+    with pytest.raises(ValueError, match="'resolutions'"):
+        sweeps.StudyConfig(resolutions=(100, 150), n_out=100)
+    with pytest.raises(ValueError, match="'method'"):
+        sweeps.make_integrator("euler")
+
+
+SHARDED = textwrap.dedent(
+    """
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    import numpy as np
+    from ldap_jax import sweeps
+    assert len(jax.devices()) == 4, jax.devices()
+    for model, method in (("snakeboard", "rdp"), ("car", "dla"), ("snakeboard", "gni")):
+        system = sweeps.MODELS[model]()
+        man = sweeps.sample_maneuvers(system, 6, seed=3)  # 6: padded to 8 on 4 devices
+        q4, c4, _ = sweeps.batch_rollout(system, sweeps.make_integrator(method), man, 3.0, 60, n_out=10)
+        one = sweeps.device_mesh(jax.devices()[:1])
+        q1, c1, _ = sweeps.batch_rollout(system, sweeps.make_integrator(method), man, 3.0, 60, n_out=10,
+                                         mesh=one)
+        assert q4.shape == (6, 11, 5), q4.shape
+        np.testing.assert_allclose(q4, q1, rtol=1e-13, atol=1e-13)
+        np.testing.assert_array_equal(c4, c1)
+    (sharded, n) = sweeps.shard_batch(man, sweeps.device_mesh())
+    assert n == 6 and len(sharded[0].sharding.device_set) == 4 and sharded[0].shape[0] == 8
+    print("OK")
+    """
+)
+
+
+def test_sharded_equals_unsharded():
+    env = dict(os.environ)
+    env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4").strip()
+    env["JAX_PLATFORMS"] = "cpu"
+    out = subprocess.run(
+        [sys.executable, "-c", SHARDED], env=env, cwd=ROOT, capture_output=True, text=True, timeout=600
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert "OK" in out.stdout
+
+
+def test_script_quick_configuration(tmp_path):
+    out = subprocess.run(
+        [
+            sys.executable,
+            os.path.join(ROOT, "scripts", "sweep.py"),
+            "--model",
+            "car",
+            "--methods",
+            "rdp,rk2",
+            "--resolutions",
+            "20,40",
+            "--runs",
+            "4",
+            "--duration",
+            "2s",
+            "--repeats",
+            "1",
+            "--out",
+            str(tmp_path),
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    rows = sweeps.read_csv(tmp_path / "sweep.csv")
+    assert [r["method"] for r in rows] == ["rdp", "rdp", "rk2", "rk2"]
+    assert os.path.exists(tmp_path / "sweep_car_2s.png")
+    bad = subprocess.run(
+        [
+            sys.executable,
+            os.path.join(ROOT, "scripts", "sweep.py"),
+            "--methods",
+            "rk5",
+            "--out",
+            str(tmp_path),
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert bad.returncode == 2 and "rk5" in bad.stderr
