@@ -325,6 +325,59 @@ def compile_times(log):
 
 
 # ------------------------------------------------------------------ output
+def user_snakeboard(sb):
+    """The snakeboard written through the public description ``lj.System`` (no closed form)."""
+    p = dict(m=sb.m, l=sb.l, I=sb.I, J=sb.J)
+
+    def lagrangian(p, r, u, xi):
+        ml2 = p["m"] * p["l"] ** 2
+        return 0.5 * (
+            p["I"] * u[0] ** 2
+            + 2 * p["I"] * u[0] * xi[0]
+            + 2 * p["J"] * u[1] ** 2
+            + ml2 * xi[0] ** 2
+            + p["m"] * (xi[1] ** 2 + xi[2] ** 2)
+        )
+
+    def connection(p, r):
+        s = jnp.sin(r[1])
+        return jnp.array(
+            [
+                [p["I"] * s**2 / (p["m"] * p["l"] ** 2), 0.0],
+                [-p["I"] * jnp.sin(2 * r[1]) / (2 * p["m"] * p["l"]), 0.0],
+                [0.0, 0.0],
+            ]
+        )
+
+    def basis(p, r):
+        return jnp.stack([jnp.sin(2 * r[1]), -2 * p["l"] * jnp.cos(r[1]) ** 2, 0.0])[:, None]
+
+    return lj.System(2, lagrangian, connection, basis, params=p, singularity=lambda p, r: jnp.cos(r[1]))
+
+
+def general_step(args, log):
+    """Cost of RDP's general implicit step relative to the closed form (snakeboard, same N, batched)."""
+    sb = SYSTEMS["snakeboard"]
+    b, n = (100, 200) if args.quick else (1000, 1000)
+    man = maneuvers(sb, b)
+    cases = [
+        ("closed form, fast path", sb, lj.RDP(), True),
+        ("closed form, general rollout", sb, lj.RDP(), False),
+        ("general Newton step (dtau_order=1)", sb, lj.RDP(solver="newton"), False),
+        ("general Newton step, exact dexp^-1", sb, lj.RDP(dtau_order=None), False),
+        ("lj.System description, Newton", user_snakeboard(sb), lj.RDP(), False),
+    ]
+    rows = []
+    for label, system, integrator, fast in cases:
+        t = timeit(rollout_fn(system, integrator, n, fast_path=fast), *man, repeats=args.repeats)
+        rows.append({"case": label, "B": b, "N": n, "wall_min": t["min"], "cpu_min": t["cpu_min"]})
+        log(f"  general step: {label}: {t['min']:.3f} s")
+    base = rows[0]["wall_min"]
+    for r in rows:
+        r["ratio_to_fast_closed_form"] = r["wall_min"] / base
+    return rows
+
+
 def write_markdown(path, res):
     lines = [
         "# ldap_jax benchmarks",
@@ -383,6 +436,18 @@ def write_markdown(path, res):
         lines.append(
             f"| {r['checkpoint']} | {r['B']} x {r['N']} | {r['forward_s']:.3f} | {r['grad_s']:.3f} "
             f"| {r['ratio']:.2f} | {mem} |"
+        )
+    lines += [
+        "",
+        "## General implicit RDP step vs the closed form (snakeboard, float64)",
+        "",
+        "| case | B x N | wall (s) | ratio to the fast closed form |",
+        "|---|---|---|---|",
+    ]
+    for r in res.get("general_step", []):
+        lines.append(
+            f"| {r['case']} | {r['B']} x {r['N']} | {r['wall_min']:.3f} "
+            f"| {r['ratio_to_fast_closed_form']:.2f} |"
         )
     lines += ["", "## Compile times (s)", ""] + [f"- {k}: {v:.2f}" for k, v in res["compile"].items()]
     with open(path, "w") as f:
@@ -445,6 +510,8 @@ def main():
     res["peers"] = peers(args, log)
     log("gradients")
     res["gradients"] = gradients(args, log)
+    log("general step vs closed form")
+    res["general_step"] = general_step(args, log)
     log("work-precision")
     res["work_precision"], res["work_precision_cost"] = work_precision(args, log)
     res["total_seconds"] = time.perf_counter() - t_start
