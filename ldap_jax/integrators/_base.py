@@ -6,9 +6,18 @@ import abc
 from typing import Any, ClassVar, NamedTuple
 
 import equinox as eqx
+import jax
+import numpy as np
 from jaxtyping import Array, Bool, Float
 
-__all__ = ["AbstractIntegrator", "StepInfo"]
+__all__ = ["AbstractIntegrator", "StepInfo", "concrete_float"]
+
+
+def concrete_float(x) -> float | None:
+    """``float(x)`` for a concrete scalar (e.g. an integrator's ``alpha``), ``None`` for a tracer."""
+    if isinstance(x, jax.core.Tracer):
+        return None
+    return float(np.asarray(x))
 
 
 class StepInfo(NamedTuple):

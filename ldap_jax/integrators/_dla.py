@@ -16,15 +16,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ._base import AbstractIntegrator, StepInfo
+from ._base import AbstractIntegrator, StepInfo, concrete_float
 
 __all__ = ["DLA", "DLAState"]
-
-
-def _concrete_float(x) -> float | None:
-    if isinstance(x, jax.core.Tracer):
-        return None
-    return float(np.asarray(x))
 
 
 def constraint_rows(system, q: Array, u_kin: Array) -> tuple[Array, Array]:
@@ -174,7 +168,7 @@ class DLA(AbstractIntegrator):
     implicit = True
 
     def __check_init__(self):
-        a = _concrete_float(self.alpha)
+        a = concrete_float(self.alpha)
         if a is not None and not 0.0 <= a <= 1.0:
             raise ValueError(f"DLA: 'alpha' must lie in [0, 1], got {self.alpha}")
         if not isinstance(self.newton_iterations, int) or self.newton_iterations < 1:
@@ -194,7 +188,7 @@ class DLA(AbstractIntegrator):
 
     @property
     def order(self) -> int:
-        return 2 if _concrete_float(self.alpha) == 0.5 else 1
+        return 2 if concrete_float(self.alpha) == 0.5 else 1
 
     def configuration(self, state):
         return state.q

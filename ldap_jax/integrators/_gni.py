@@ -11,8 +11,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ._base import AbstractIntegrator, StepInfo
-from ._dla import _concrete_float, constraint_rows, full_force, mass_matrix, project
+from ._base import AbstractIntegrator, StepInfo, concrete_float
+from ._dla import constraint_rows, full_force, mass_matrix, project
 
 __all__ = ["GNI", "GNIState"]
 
@@ -94,7 +94,7 @@ class GNI(AbstractIntegrator):
     variant: Literal["faithful", "folded"] = eqx.field(default="faithful", static=True)
 
     def __check_init__(self):
-        a = _concrete_float(self.alpha)
+        a = concrete_float(self.alpha)
         if a is not None and not 0.0 <= a <= 1.0:
             raise ValueError(f"GNI: 'alpha' must lie in [0, 1], got {self.alpha}")
         if self.variant not in ("faithful", "folded"):
@@ -106,7 +106,7 @@ class GNI(AbstractIntegrator):
 
     @property
     def order(self) -> int:
-        return 2 if _concrete_float(self.alpha) == 0.5 else 1
+        return 2 if concrete_float(self.alpha) == 0.5 else 1
 
     def configuration(self, state):
         return state.q

@@ -7,12 +7,11 @@ from typing import Literal, NamedTuple
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array
 
 from ..lie import compose, dtau_inv, retract
 from ..systems._base import body_velocity, spatial_velocity
-from ._base import AbstractIntegrator, StepInfo
+from ._base import AbstractIntegrator, StepInfo, concrete_float
 
 __all__ = ["RDP", "RDPState"]
 
@@ -36,13 +35,6 @@ class RDPState(NamedTuple):
     u: Array
     f: Array
     w: Array
-
-
-def _concrete_float(x) -> float | None:
-    """``float(x)`` for a concrete scalar, ``None`` for a tracer."""
-    if isinstance(x, jax.core.Tracer):
-        return None
-    return float(np.asarray(x))
 
 
 def _omega_coords(e: Array, v: Array) -> Array:
@@ -100,7 +92,7 @@ class RDP(AbstractIntegrator):
     newton_iterations: int = eqx.field(default=20, static=True)
 
     def __check_init__(self):
-        a = _concrete_float(self.alpha)
+        a = concrete_float(self.alpha)
         if a is not None:
             if not 0.0 <= a <= 1.0:
                 raise ValueError(f"RDP: 'alpha' must lie in [0, 1], got {self.alpha}")
@@ -121,7 +113,7 @@ class RDP(AbstractIntegrator):
 
     @property
     def order(self) -> int:
-        return 2 if _concrete_float(self.alpha) == 0.5 else 1
+        return 2 if concrete_float(self.alpha) == 0.5 else 1
 
     @property
     def implicit(self) -> bool:  # type: ignore[override]
