@@ -10,7 +10,7 @@ import jax
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-__all__ = ["AbstractIntegrator", "StepInfo", "concrete_float"]
+__all__ = ["AbstractIntegrator", "AbstractAlphaIntegrator", "StepInfo", "concrete_float"]
 
 
 def concrete_float(x) -> float | None:
@@ -64,3 +64,30 @@ class AbstractIntegrator(eqx.Module):
     @abc.abstractmethod
     def configuration(self, state) -> Array:
         """The configuration ``q_k`` held by a state."""
+
+
+class AbstractAlphaIntegrator(AbstractIntegrator):
+    """A one-step scheme with a quadrature point ``alpha in [0, 1]`` (RDP, DLA, GNI).
+
+    Controls are read at both ends of each step (``f_{k+alpha} = (1-alpha) f_k + alpha f_{k+1}``),
+    the state carries the configuration as ``state.q``, and the order is 2 at ``alpha = 1/2``
+    (symmetric) and 1 otherwise.
+    """
+
+    alpha: eqx.AbstractVar[float]
+
+    def __check_init__(self):
+        a = concrete_float(self.alpha)
+        if a is not None and not 0.0 <= a <= 1.0:
+            raise ValueError(f"{type(self).__name__}: 'alpha' must lie in [0, 1], got {self.alpha}")
+
+    @property
+    def control_nodes(self):
+        return (0.0, 1.0)
+
+    @property
+    def order(self) -> int:
+        return 2 if concrete_float(self.alpha) == 0.5 else 1
+
+    def configuration(self, state):
+        return state.q

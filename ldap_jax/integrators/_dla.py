@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ._base import AbstractIntegrator, StepInfo, concrete_float
+from ._base import AbstractAlphaIntegrator, StepInfo
 
 __all__ = ["DLA", "DLAState"]
 
@@ -111,7 +111,7 @@ class DLAState(NamedTuple):
     v: Array
 
 
-class DLA(AbstractIntegrator):
+class DLA(AbstractAlphaIntegrator):
     r"""Discrete Lagrange-d'Alembert integrator (Cortes and Martinez 2001), modified for forces.
 
     Discrete Lagrangian ``L_d(q_k, q_{k+1}) = h L(q_{k+a}, v_k)`` with
@@ -168,9 +168,6 @@ class DLA(AbstractIntegrator):
     implicit = True
 
     def __check_init__(self):
-        a = concrete_float(self.alpha)
-        if a is not None and not 0.0 <= a <= 1.0:
-            raise ValueError(f"DLA: 'alpha' must lie in [0, 1], got {self.alpha}")
         if not isinstance(self.newton_iterations, int) or self.newton_iterations < 1:
             raise ValueError(
                 f"DLA: 'newton_iterations' must be a positive integer, got {self.newton_iterations!r}"
@@ -181,17 +178,6 @@ class DLA(AbstractIntegrator):
             )
         if self.rtol is not None and not self.rtol > 0:
             raise ValueError(f"DLA: 'rtol' must be positive, got {self.rtol!r}")
-
-    @property
-    def control_nodes(self):
-        return (0.0, 1.0)
-
-    @property
-    def order(self) -> int:
-        return 2 if concrete_float(self.alpha) == 0.5 else 1
-
-    def configuration(self, state):
-        return state.q
 
     def init(self, system, h, q0, qdot0, c0):
         p0 = jax.grad(system.lagrangian, argnums=1)(q0, qdot0)

@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ._base import AbstractIntegrator, StepInfo, concrete_float
+from ._base import AbstractAlphaIntegrator, StepInfo
 from ._dla import constraint_rows, full_force, mass_matrix, project
 
 __all__ = ["GNI", "GNIState"]
@@ -31,7 +31,7 @@ class GNIState(NamedTuple):
     f: Array
 
 
-class GNI(AbstractIntegrator):
+class GNI(AbstractAlphaIntegrator):
     r"""Geometric nonholonomic integrator (Ferraro, Iglesias, Martin de Diego 2008), with forces.
 
     With the discrete Legendre transforms ``p^-_k = D_2 L_d(q_{k-1}, q_k)``,
@@ -94,22 +94,8 @@ class GNI(AbstractIntegrator):
     variant: Literal["faithful", "folded"] = eqx.field(default="faithful", static=True)
 
     def __check_init__(self):
-        a = concrete_float(self.alpha)
-        if a is not None and not 0.0 <= a <= 1.0:
-            raise ValueError(f"GNI: 'alpha' must lie in [0, 1], got {self.alpha}")
         if self.variant not in ("faithful", "folded"):
             raise ValueError(f"GNI: 'variant' must be 'faithful' or 'folded', got {self.variant!r}")
-
-    @property
-    def control_nodes(self):
-        return (0.0, 1.0)
-
-    @property
-    def order(self) -> int:
-        return 2 if concrete_float(self.alpha) == 0.5 else 1
-
-    def configuration(self, state):
-        return state.q
 
     def init(self, system, h, q0, qdot0, c0):
         # The explicit form needs a configuration-independent mass matrix (true for the car and

@@ -11,7 +11,7 @@ from jaxtyping import Array
 
 from ..lie import compose, dtau_inv, retract
 from ..systems._base import body_velocity, spatial_velocity
-from ._base import AbstractIntegrator, StepInfo, concrete_float
+from ._base import AbstractAlphaIntegrator, StepInfo
 
 __all__ = ["RDP", "RDPState"]
 
@@ -44,7 +44,7 @@ def _omega_coords(e: Array, v: Array) -> Array:
     return jnp.linalg.solve(e.T @ e, e.T @ v)
 
 
-class RDP(AbstractIntegrator):
+class RDP(AbstractAlphaIntegrator):
     r"""Reduced d'Alembert-Pontryagin integrator of Kobilarov, Marsden and Sukhatme.
 
     On a segment ``[t_k, t_{k+1}]`` with ``r_{k+a} = r_k + a h u_k`` and
@@ -92,10 +92,6 @@ class RDP(AbstractIntegrator):
     newton_iterations: int = eqx.field(default=20, static=True)
 
     def __check_init__(self):
-        a = concrete_float(self.alpha)
-        if a is not None:
-            if not 0.0 <= a <= 1.0:
-                raise ValueError(f"RDP: 'alpha' must lie in [0, 1], got {self.alpha}")
         if self.retraction not in ("exp", "cayley"):
             raise ValueError(f"RDP: 'retraction' must be 'exp' or 'cayley', got {self.retraction!r}")
         if self.dtau_order is not None and (not isinstance(self.dtau_order, int) or self.dtau_order < 1):
@@ -108,22 +104,11 @@ class RDP(AbstractIntegrator):
             )
 
     @property
-    def control_nodes(self):
-        return (0.0, 1.0)
-
-    @property
-    def order(self) -> int:
-        return 2 if concrete_float(self.alpha) == 0.5 else 1
-
-    @property
     def implicit(self) -> bool:  # type: ignore[override]
         return self.solver == "newton" or self.dtau_order != 1
 
     def _uses_closed_form(self, system) -> bool:
         return self.solver == "auto" and self.dtau_order == 1 and hasattr(system, "rdp_closed_form")
-
-    def configuration(self, state):
-        return state.q
 
     def init(self, system, h, q0, qdot0, c0):
         r0, rdot0 = q0[3:], qdot0[3:]
