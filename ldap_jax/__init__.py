@@ -12,6 +12,8 @@ from . import control as control
 from . import integrators as integrators
 from . import lie as lie
 from . import systems as systems
+from ._compilation_cache import memory_mappings as memory_mappings
+from ._compilation_cache import trim_compilation_cache as trim_compilation_cache
 from ._controls import AbstractControls as AbstractControls
 from ._controls import Sampled as Sampled
 from ._controls import Sinusoids as Sinusoids

@@ -326,33 +326,21 @@ def compile_times(log):
 
 # ------------------------------------------------------------------ output
 def user_snakeboard(sb):
-    """The snakeboard written through the public description ``lj.System`` (no closed form)."""
+    """The snakeboard as a user's ``lj.System``: the model's reduced description (l, A(r), e(r))
+    handed to the public description, so every step goes through the general autodiff path."""
     p = dict(m=sb.m, l=sb.l, I=sb.I, J=sb.J)
 
-    def lagrangian(p, r, u, xi):
-        ml2 = p["m"] * p["l"] ** 2
-        return 0.5 * (
-            p["I"] * u[0] ** 2
-            + 2 * p["I"] * u[0] * xi[0]
-            + 2 * p["J"] * u[1] ** 2
-            + ml2 * xi[0] ** 2
-            + p["m"] * (xi[1] ** 2 + xi[2] ** 2)
-        )
+    def model(p):
+        return lj.Snakeboard(**p)
 
-    def connection(p, r):
-        s = jnp.sin(r[1])
-        return jnp.array(
-            [
-                [p["I"] * s**2 / (p["m"] * p["l"] ** 2), 0.0],
-                [-p["I"] * jnp.sin(2 * r[1]) / (2 * p["m"] * p["l"]), 0.0],
-                [0.0, 0.0],
-            ]
-        )
-
-    def basis(p, r):
-        return jnp.stack([jnp.sin(2 * r[1]), -2 * p["l"] * jnp.cos(r[1]) ** 2, 0.0])[:, None]
-
-    return lj.System(2, lagrangian, connection, basis, params=p, singularity=lambda p, r: jnp.cos(r[1]))
+    return lj.System(
+        2,
+        lambda p, r, u, xi: model(p).reduced_lagrangian(r, u, xi),
+        lambda p, r: model(p).connection(r),
+        lambda p, r: model(p).symmetry_basis(r),
+        params=p,
+        singularity=lambda p, r: jnp.cos(r[1]),
+    )
 
 
 def general_step(args, log):

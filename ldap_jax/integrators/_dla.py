@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
+from .._linalg import solve
 from ._base import AbstractAlphaIntegrator, StepInfo
 
 __all__ = ["DLA", "DLAState"]
@@ -63,7 +64,7 @@ def project(system, q: Array, w: Array, u_kin: Array) -> Array:
     mass = mass_matrix(system, q, w)
     m = rows.shape[0]
     kkt = jnp.block([[mass, rows.T], [rows, jnp.zeros((m, m), q.dtype)]])
-    sol = jnp.linalg.solve(kkt, jnp.concatenate([mass @ w, rhs]))
+    sol = solve(kkt, jnp.concatenate([mass @ w, rhs]))
     return sol[: w.shape[0]]
 
 
@@ -78,7 +79,7 @@ def _newton(f, z0, *, budget: int, tol):
 
     def body(carry):
         z, res, it = carry
-        z_new = z - jnp.linalg.solve(jax.jacfwd(f)(z), res)
+        z_new = z - solve(jax.jacfwd(f)(z), res)
         ok = jnp.all(jnp.isfinite(z_new))
         z_new = jnp.where(ok, z_new, z)
         res_new = jnp.where(ok, f(z_new), res)
@@ -93,7 +94,7 @@ def _newton(f, z0, *, budget: int, tol):
 
 def _tangent_solve(g, y):
     """Linear solve with the (linear) map ``g``, for implicit differentiation of the root."""
-    return jnp.linalg.solve(jax.jacfwd(g)(y), y)
+    return solve(jax.jacfwd(g)(y), y)
 
 
 class DLAState(NamedTuple):
@@ -210,7 +211,7 @@ class DLA(AbstractAlphaIntegrator):
             # a = 0 step at q_k: [[M, -W^T], [W, 0]] (v, lambda) = (p + h F, b)
             mass = mass_matrix(system, q, v_prev)
             kkt = jnp.block([[mass, -rows.T], [rows, jnp.zeros((n_rows, n_rows), dtype)]])
-            z0 = jnp.linalg.solve(kkt, jnp.concatenate([p + h * force, rhs]))
+            z0 = solve(kkt, jnp.concatenate([p + h * force, rhs]))
         else:
             kin = np.asarray(system.kinematic_index, dtype=int)
             v0 = v_prev.at[3 + kin].set(u_kin[kin]) if kin.size else v_prev

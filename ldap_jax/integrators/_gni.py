@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
+from .._linalg import solve
 from ._base import AbstractAlphaIntegrator, StepInfo
 from ._dla import constraint_rows, full_force, mass_matrix, project
 
@@ -133,13 +134,13 @@ class GNI(AbstractAlphaIntegrator):
             rows_prev, rhs_prev = constraint_rows(system, q, _kin_velocity(system, v_prev, u_kin))
             target = rhs + rhs_prev - rows_prev @ v_prev
             kkt = jnp.block([[mass, -rows.T], [rows, zero]])
-            v = jnp.linalg.solve(kkt, jnp.concatenate([mom, target]))[:d]
+            v = solve(kkt, jnp.concatenate([mom, target]))[:d]
         else:
 
             def solve_at(v_guess):
                 rows_a, rhs_a = constraint_rows(system, q + a * h * v_guess, u_kin)
                 kkt = jnp.block([[mass, -rows.T], [rows_a, zero]])
-                return jnp.linalg.solve(kkt, jnp.concatenate([mom, rhs_a]))[:d]
+                return solve(kkt, jnp.concatenate([mom, rhs_a]))[:d]
 
             v = solve_at(solve_at(v_prev))
 

@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
+from .._linalg import solve
 from ..lie import compose, dtau_inv, retract
 from ..systems._base import body_velocity, spatial_velocity
 from ._base import AbstractAlphaIntegrator, StepInfo
@@ -41,7 +42,7 @@ def _omega_coords(e: Array, v: Array) -> Array:
     """Coordinates of ``v`` in the columns of ``e`` (least squares; empty when c = 0)."""
     if e.shape[1] == 0:
         return jnp.zeros((0,), v.dtype)
-    return jnp.linalg.solve(e.T @ e, e.T @ v)
+    return solve(e.T @ e, e.T @ v)
 
 
 class RDP(AbstractAlphaIntegrator):
@@ -153,27 +154,27 @@ class RDP(AbstractAlphaIntegrator):
             hor, vert = self._residual_parts(system, h, r, u, xi, b, mu_in)
             return jnp.concatenate([hor[dyn], vert])
 
-        def solve(f, z0):
+        def newton(f, z0):
             def cond(carry):
                 z, k, res = carry
                 return (k < self.newton_iterations) & (res > tol)
 
             def body(carry):
                 z, k, _ = carry
-                z = z - jnp.linalg.solve(jax.jacfwd(f)(z), f(z))
+                z = z - solve(jax.jacfwd(f)(z), f(z))
                 return z, k + 1, jnp.linalg.norm(f(z))
 
             z, k, _ = jax.lax.while_loop(cond, body, (z0, jnp.zeros((), jnp.int32), jnp.linalg.norm(f(z0))))
             # one more (quadratically converging) iteration takes the residual to round-off
-            z = z - jnp.linalg.solve(jax.jacfwd(f)(z), f(z))
+            z = z - solve(jax.jacfwd(f)(z), f(z))
             # the iteration count rides as a float: custom_root's JVP rejects integer aux data
             return z, (k + 1).astype(z.dtype)
 
         def tangent_solve(g, y):
-            return jnp.linalg.solve(jax.jacfwd(g)(jnp.zeros_like(y)), y)
+            return solve(jax.jacfwd(g)(jnp.zeros_like(y)), y)
 
         z0 = jnp.concatenate([u_guess[dyn], w_guess])
-        z, iterations = jax.lax.custom_root(residual, z0, solve, tangent_solve, has_aux=True)
+        z, iterations = jax.lax.custom_root(residual, z0, newton, tangent_solve, has_aux=True)
         u, xi = unpack(z)
         return u, xi, z[nd:], jax.lax.stop_gradient(iterations).astype(jnp.int32)
 

@@ -23,6 +23,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
+from .._linalg import solve
+
 __all__ = ["AbstractSystem", "body_velocity", "positive_parameter"]
 
 
@@ -199,7 +201,7 @@ class AbstractSystem(eqx.Module):
         m = rows.shape[0]
         kkt = jnp.block([[mass, -rows.T], [rows, jnp.zeros((m, m), q.dtype)]])
         rhs = jnp.concatenate([dl_dq - mixed @ qdot + force, rhs_c])
-        sol = jnp.linalg.solve(kkt, rhs)
+        sol = solve(kkt, rhs)
         return sol[:d], sol[d:]
 
     def ode(self, y: tuple[Array, Array], controls: Array) -> tuple[Array, Array]:
@@ -230,5 +232,5 @@ class AbstractSystem(eqx.Module):
         w0 = jnp.zeros(e.shape[1], r.dtype)
         res0 = proj(w0) - momentum
         jac = jax.jacfwd(proj)(w0)
-        w = -jnp.linalg.solve(jac, res0)
+        w = -solve(jac, res0)
         return e @ w - a_rdot

@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import PyTree
 
+from .._linalg import solve
 from ..lie import ad
 from ._base import AbstractSystem, body_velocity, spatial_velocity
 
@@ -226,7 +227,7 @@ class System(AbstractSystem):
         v = body_velocity(q, qdot) + self.connection(r) @ rdot
         e = self.symmetry_basis(r)
         if e.shape[1]:
-            v = v - e @ jnp.linalg.solve(e.T @ e, e.T @ v)
+            v = v - e @ solve(e.T @ e, e.T @ v)
         return jnp.linalg.norm(v)
 
     # ------------------------------------------- continuous equations (derived)
@@ -247,7 +248,7 @@ class System(AbstractSystem):
         dyn = jnp.asarray(self.dynamic_index, dtype=int)
         e = self.symmetry_basis(r)
         omega = body_velocity(q, qdot) + self.connection(r) @ rdot
-        w = jnp.linalg.solve(e.T @ e, e.T @ omega) if e.shape[1] else jnp.zeros((0,), q.dtype)
+        w = solve(e.T @ e, e.T @ omega) if e.shape[1] else jnp.zeros((0,), q.dtype)
         return jnp.concatenate([rdot[dyn], w])
 
     def velocity_dynamics(self, q, v, f, u_kin, u_kin_dot=None):
@@ -276,4 +277,4 @@ class System(AbstractSystem):
         acc0 = jnp.zeros(self.n_velocities, q.dtype)
         res0 = residual(acc0)
         jac = jax.jacfwd(residual)(acc0)
-        return -jnp.linalg.solve(jac, res0)
+        return -solve(jac, res0)
