@@ -17,6 +17,15 @@ import os
 import platform
 import time
 
+# One XLA host device per core, so the headline is also measured with the batch sharded across
+# cores (one program per core, as ``ldap_jax.sweeps`` runs the study), next to the default single
+# device (whose loop fusions XLA splits over its intra-op thread pool, with a barrier per fusion).
+# Set before jax is imported; everything else here runs on the first device as usual.
+if "xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = (
+        os.environ.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={os.cpu_count() or 1}"
+    )
+
 import jax
 
 jax.config.update("jax_enable_x64", True)
@@ -26,6 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import ldap_jax as lj
+from ldap_jax import sweeps
 
 SYSTEMS = {
     "car": lj.Car(m=1.0, I=0.1, K=0.2, rho=0.1, l=0.5),
@@ -169,6 +179,49 @@ def throughput(args, log):
     return rows
 
 
+def headline(args, log):
+    """The target configuration (snakeboard, RDP, float64, B x N = 1000 x 1000): forward
+    throughput (positions only, and the whole trajectory with its diagnostics) and the cost of
+    a gradient of a terminal cost, on one device and with the batch sharded over every device."""
+    system = SYSTEMS["snakeboard"]
+    b, n = args.batch, args.steps
+    data = maneuvers(system, b)
+    layouts = [("1 device", data)]
+    if jax.device_count() > 1:
+        layouts.append(
+            (f"sharded over {jax.device_count()} devices", sweeps.shard_batch(data, sweeps.device_mesh())[0])
+        )
+    rows = []
+    for layout, (q0, qdot0, ctl) in layouts:
+        row = dict(layout=layout, B=b, N=n)
+        for what in ("q", "traj"):
+            st = timeit(rollout_fn(system, lj.RDP(), n, what=what), q0, qdot0, ctl, repeats=args.repeats)
+            row[f"steps_per_s_{what}"] = b * n / st["min"]
+        fwd = jax.jit(lambda c, q0=q0, qdot0=qdot0: _terminal_loss(system, q0, qdot0, c, n, False))
+        grad = jax.jit(jax.grad(lambda c, q0=q0, qdot0=qdot0: _terminal_loss(system, q0, qdot0, c, n, False)))
+        st_f = timeit(fwd, ctl, repeats=args.repeats)
+        st_g = timeit(grad, ctl, repeats=args.repeats)
+        row.update(forward_s=st_f["min"], grad_s=st_g["min"], grad_ratio=st_g["min"] / st_f["min"])
+        rows.append(row)
+        log(
+            f"  {layout}: {row['steps_per_s_q']:.3g} steps/s (positions), {row['steps_per_s_traj']:.3g} "
+            f"(trajectory), gradient/forward {row['grad_ratio']:.2f}"
+        )
+    return rows
+
+
+def _terminal_loss(system, q0, qdot0, ctl, n, checkpoint):
+    """Sum over the batch of ``|(x_N, y_N)|^2``: the loss whose gradient is timed."""
+
+    def one(a, b, c):
+        q = lj.simulate(
+            system, a, b, c, t_final=10.0, n_steps=n, check_constraints=False, checkpoint=checkpoint
+        ).q
+        return jnp.sum(q[-1, :2] ** 2)
+
+    return jnp.sum(jax.vmap(one)(q0, qdot0, ctl))
+
+
 def peers(args, log):
     system = SYSTEMS["snakeboard"]
     b, n = args.batch, args.steps
@@ -256,17 +309,7 @@ def gradients(args, log):
     fwd = jax.jit(lambda c: jnp.sum(rollout_fn(system, lj.RDP(), n)(q0, qdot0, c)[:, -1, :2] ** 2))
     st_f = timeit(fwd, ctl, repeats=args.repeats)
     for ck in (False, True):
-
-        def loss(c, ck=ck):
-            def one(a, bb, cc):
-                q = lj.simulate(
-                    system, a, bb, cc, t_final=10.0, n_steps=n, check_constraints=False, checkpoint=ck
-                ).q
-                return jnp.sum(q[-1, :2] ** 2)
-
-            return jnp.sum(jax.vmap(one)(q0, qdot0, c))
-
-        g = jax.jit(jax.grad(loss))
+        g = jax.jit(jax.grad(lambda c, ck=ck: _terminal_loss(system, q0, qdot0, c, n, ck)))
         st_g = timeit(g, ctl, repeats=args.repeats)
         mem = {}
         for nn in (args.mem_steps // 10, args.mem_steps):
@@ -376,6 +419,19 @@ def write_markdown(path, res):
         "",
     ]
     lines += [
+        "## Headline (snakeboard, RDP, float64, B x N = 1000 x 1000)",
+        "",
+        "| layout | steps/s (positions) | steps/s (trajectory + diagnostics) | forward (s) | gradient (s) "
+        "| gradient / forward |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in res.get("headline", []):
+        lines.append(
+            f"| {r['layout']} | {r['steps_per_s_q']:.3g} | {r['steps_per_s_traj']:.3g} "
+            f"| {r['forward_s']:.3f} | {r['grad_s']:.3f} | {r['grad_ratio']:.2f} |"
+        )
+    lines += [
+        "",
         "## Forward throughput (steps/s)",
         "",
         "| model | dtype | integrator | mode | B x N | steps/s (wall) | steps/s (cpu) |",
@@ -472,7 +528,7 @@ def main():
     args.batch, args.steps = (1000, 1000)
     args.grad_batch = 100 if q else 1000
     args.mem_steps = 10_000
-    args.wp_maneuvers = 8 if q else 100
+    args.wp_maneuvers = 64 if q else 256  # batched, as a sweep runs them (per-step overhead amortised)
     args.wp_steps = [50, 200, 800] if q else [25, 50, 100, 200, 400, 800, 1600, 3200]
     args.wp_tols = [1e-4, 1e-7] if q else [1e-3, 1e-4, 1e-5, 1e-6, 1e-7, 1e-8, 1e-9]
     os.makedirs(args.out, exist_ok=True)
@@ -490,6 +546,8 @@ def main():
         args_tp = argparse.Namespace(**{**vars(args), "batch": 200, "steps": 500})
     else:
         args_tp = args
+    log("headline (snakeboard RDP, B = N = 1000)")
+    res["headline"] = headline(args, log)
     log("compile times")
     res["compile"] = compile_times(log)
     log("forward throughput")

@@ -77,19 +77,21 @@ def _sincos_impl(x: Array) -> tuple[Array, Array]:
     pc = jnp.asarray(_C[5], dtype)
     for coef in _C[4::-1]:
         pc = pc * z + jnp.asarray(coef, dtype)
-    s = r + r * z * ps
-    c = (1.0 - 0.5 * z) + z * z * pc
+    # A division by a runtime 1 (x * 0 is not folded for floats) marks each kernel value
+    # "expensive" for XLA's fusion pass: ``s`` and ``c`` (one polynomial each) are then
+    # materialised once, and only the cheap quadrant selects below fuse into the consumers.
+    # (Without it XLA duplicated the polynomials into every consumer fusion, about five times
+    # per step; with the selects before the division, each of sin and cos needed both.)
+    one = x * 0 + 1
+    s = (r + r * z * ps) / one
+    c = ((1.0 - 0.5 * z) + z * z * pc) / one
     q = n.astype(jnp.int32) & 3
     swap = (q & 1) == 1
     sin = jnp.where(swap, c, s)
     cos = jnp.where(swap, s, c)
     sin = jnp.where(q >= 2, -sin, sin)
     cos = jnp.where((q == 1) | (q == 2), -cos, cos)
-    # a division by a runtime 1 (x * 0 is not folded for floats) marks the result "expensive"
-    # for XLA's fusion pass, which otherwise duplicates the whole polynomial into every
-    # consumer fusion (measured: each sin/cos evaluated about five times per step)
-    one = x * 0 + 1
-    return sin / one, cos / one
+    return sin, cos
 
 
 @jax.custom_jvp
