@@ -6,6 +6,7 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from ._controls import AbstractControls
@@ -41,7 +42,7 @@ def reference(
     controls: AbstractControls,
     ts: ArrayLike,
     *,
-    t0: ArrayLike | None = None,
+    t0: ArrayLike = 0.0,
     rtol: float = 1e-11,
     atol: float = 1e-11,
     solver: diffrax.AbstractSolver | None = None,
@@ -55,7 +56,9 @@ def reference(
 
     Args:
         system, q0, qdot0, controls: as for :func:`ldap_jax.simulate`.
-        ts: increasing sample times (T,); the initial state is given at ``t0`` (default ``ts[0]``).
+        ts: non-decreasing sample times (T,), all ``>= t0``; e.g. ``traj.t`` of a
+            :func:`~ldap_jax.simulate` run, or just ``[t_final]``.
+        t0: the time at which ``(q0, qdot0)`` is given (default 0, as for :func:`~ldap_jax.simulate`).
         rtol, atol: tolerances (float64 recommended: enable ``jax_enable_x64``).
         solver: a diffrax solver (default ``diffrax.Dopri8()``).
         max_steps: cap on solver steps.
@@ -73,8 +76,12 @@ def reference(
         raise ValueError(
             f"'controls' has {controls.n_channels} channels, the system takes {system.n_controls}"
         )
-    if t0 is None:
-        t0 = ts[0]
+    if jnp.ndim(t0) != 0:
+        raise ValueError(f"'t0' must be a scalar, got shape {jnp.shape(t0)}")
+    if not isinstance(ts, jax.core.Tracer) and not isinstance(t0, jax.core.Tracer):
+        ts_np = np.asarray(ts)
+        if np.any(np.diff(ts_np) < 0) or ts_np[0] < float(t0):
+            raise ValueError(f"'ts' must be non-decreasing and start at or after t0={float(t0)}, got {ts_np}")
     return _reference(system, q0, qdot0, controls, ts, t0, rtol, atol, solver or diffrax.Dopri8(), max_steps)
 
 

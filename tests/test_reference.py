@@ -60,3 +60,26 @@ def test_reference_vmaps():
     batched = jax.vmap(lambda a, b, c: lj.reference(car, a, b, c, ts))(*man)
     single = lj.reference(car, *index(man, 2), ts)
     np.testing.assert_allclose(batched.q[2], single.q, atol=1e-12)
+
+
+def test_initial_state_is_at_t0_whatever_ts_holds():
+    """The initial state is given at ``t0`` (default 0, as for ``simulate``), not at ``ts[0]``:
+    asking for the final time alone gives the same answer as a full grid; ``t0`` shifts it."""
+    sb = SYSTEMS["snakeboard"]
+    q0, qdot0, ctl = index(maneuvers(sb, 1, seed=24), 0)
+    full = lj.reference(sb, q0, qdot0, ctl, jnp.linspace(0.0, 4.0, 9))
+    last = lj.reference(sb, q0, qdot0, ctl, jnp.array([4.0]))
+    np.testing.assert_allclose(last.q[0], full.q[-1], atol=1e-10)
+    car = SYSTEMS["car"]  # (the snakeboard maneuvers are phase-matched to start at t = 0)
+    q0, qdot0, ctl = index(maneuvers(car, 1, seed=24), 0)
+    qdot0 = car.consistent_qdot(q0, qdot0, ctl(1.0))
+    shifted = lj.reference(car, q0, qdot0, ctl, jnp.array([1.0, 5.0]), t0=1.0)
+    traj = lj.simulate(car, q0, qdot0, ctl, t0=1.0, t_final=5.0, n_steps=400)
+    unshifted = lj.reference(car, q0, qdot0, ctl, jnp.array([4.0]))
+    np.testing.assert_allclose(shifted.q[0], q0, atol=1e-14)
+    assert float(jnp.linalg.norm(shifted.q[-1, :2] - traj.q[-1, :2])) < 1e-3
+    assert float(jnp.linalg.norm(shifted.q[-1, :2] - unshifted.q[-1, :2])) > 1e-2
+    with pytest.raises(ValueError, match="'ts'"):
+        lj.reference(sb, q0, qdot0, ctl, jnp.array([2.0, 1.0]))
+    with pytest.raises(ValueError, match="'ts'"):
+        lj.reference(sb, q0, qdot0, ctl, jnp.array([0.5, 1.0]), t0=1.0)
