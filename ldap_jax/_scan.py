@@ -25,17 +25,25 @@ def check_checkpoint(checkpoint) -> bool | str | int:
     )
 
 
-def checkpointed_scan(body, init, xs, *, length: int, checkpoint=False, unroll: int = 1):
+def checkpointed_scan(
+    body, init, xs, *, length: int, checkpoint=False, unroll: int = 1, saved: str | None = None
+):
     """``lax.scan(body, init, xs)`` with a memory policy for reverse mode.
 
     Args:
-        checkpoint: ``False``: store every step's residuals (fastest, memory O(N) step internals).
+        checkpoint: ``False``: store every step's residuals (fastest, memory O(N) step internals);
+            with ``saved``, store only the values the body tagged with
+            ``jax.ad_checkpoint.checkpoint_name(x, saved)`` (and the carry), and recompute the rest
+            in the backward pass (``jax.checkpoint`` with ``save_only_these_names``).
             ``"step"`` (or ``True``): ``jax.checkpoint`` on the body, memory O(N) carries.
             ``"sqrt"``: nested, the scan split into ~sqrt(N) chunks of ~sqrt(N) steps with each chunk
             checkpointed, memory O(sqrt N) carries (plus the outputs) for about one extra forward pass.
             An integer ``k``: the nested scheme with chunks of ``k`` steps.
     """
     policy = check_checkpoint(checkpoint)
+    if policy is False and saved is not None:
+        body = jax.checkpoint(body, policy=jax.checkpoint_policies.save_only_these_names(saved))
+        return jax.lax.scan(body, init, xs, length=length, unroll=unroll)
     if policy is False:
         return jax.lax.scan(body, init, xs, length=length, unroll=unroll)
     if policy == "step":

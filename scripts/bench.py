@@ -308,7 +308,7 @@ def gradients(args, log):
     rows = []
     fwd = jax.jit(lambda c: jnp.sum(rollout_fn(system, lj.RDP(), n)(q0, qdot0, c)[:, -1, :2] ** 2))
     st_f = timeit(fwd, ctl, repeats=args.repeats)
-    for ck in (False, True):
+    for ck in (False, "step", "sqrt"):
         g = jax.jit(jax.grad(lambda c, ck=ck: _terminal_loss(system, q0, qdot0, c, n, ck)))
         st_g = timeit(g, ctl, repeats=args.repeats)
         mem = {}

@@ -9,7 +9,7 @@ writes ``OUT/optimize_<model>_<task>.json`` (final_position_error [m], final_hea
 of the replay, loss, iterations, wall_s, ...) and ``OUT/optimize_<model>_<task>.png`` (path with
 the vehicle drawn, controls over time, loss curve). Options: ``--starts N`` multi-start (vmap
 over N random initial guesses, keep the best, count how many reach the goal);
-``--checkpoint`` rematerialises the rollout in reverse mode; ``--memory`` reports the peak memory
+``--checkpoint [step|sqrt]`` rematerialises the rollout in reverse mode; ``--memory`` reports the peak memory
 of the gradient of a 10^4-step rollout with and without checkpointing; ``--compare-integrators``
 optimizes with RDP and RK4 at the same step and replays both on the reference.
 """
@@ -123,7 +123,15 @@ def main():
     parser.add_argument("--out", default="results", help="output folder")
     parser.add_argument("--integrator", choices=sorted(INTEGRATORS), default="rdp")
     parser.add_argument("--starts", type=int, default=1, help="multi-start: number of random initial guesses")
-    parser.add_argument("--checkpoint", action="store_true", help="jax.checkpoint on the rollout scan body")
+    parser.add_argument(
+        "--checkpoint",
+        nargs="?",
+        const="step",
+        default=False,
+        choices=["step", "sqrt"],
+        help="memory policy of the rollout in reverse mode: 'step' (jax.checkpoint on the scan body) or "
+        "'sqrt' (nested, O(sqrt N) stored carries)",
+    )
     parser.add_argument("--iterations", type=int, default=None)
     parser.add_argument("--n-steps", type=int, default=None, help="rollout steps (default: the task's)")
     parser.add_argument("--seed", type=int, default=0)
@@ -200,9 +208,9 @@ def main():
         record["integrator_comparison"] = cmp
     if args.memory:
         mem = {}
-        for ck in (False, True):
+        for ck in (False, "step", "sqrt"):
             t_m = task.with_options(n_steps=10_000, checkpoint=ck)
-            mem["checkpoint" if ck else "no_checkpoint"] = lc.gradient_memory(t_m, t_m.init())
+            mem[f"checkpoint_{ck}" if ck else "no_checkpoint"] = lc.gradient_memory(t_m, t_m.init())
         record["gradient_memory_10k_steps"] = mem
     stem = f"optimize_{args.model}_{args.task}"
     (out / f"{stem}.json").write_text(json.dumps(record, indent=2) + "\n")

@@ -23,6 +23,7 @@ import numpy as np
 from jaxtyping import Array, PRNGKeyArray
 
 from .._reference import reference
+from .._scan import check_checkpoint
 from .._simulate import Trajectory, simulate
 from ..integrators import RDP, AbstractIntegrator
 from ..systems import AbstractSystem, Car, Snakeboard
@@ -45,7 +46,8 @@ class Task(eqx.Module):
         q_lower, q_upper: bounds on ``q`` (5,), infinite entries are off.
         c_max: bound on ``|c|`` per channel (n_channels,), infinite entries are off.
         guess: optional gait whose samples initialise sampled controls.
-        checkpoint: ``jax.checkpoint`` on the rollout's scan body (long horizons).
+        checkpoint: the rollout's memory policy in reverse mode, as for
+            :func:`~ldap_jax.simulate` (``False``, ``True``/``"step"``, ``"sqrt"`` or a chunk length).
     """
 
     name: str = eqx.field(static=True)
@@ -67,7 +69,7 @@ class Task(eqx.Module):
     q_upper: Array
     c_max: Array
     guess: SinusoidGait | None = None
-    checkpoint: bool = eqx.field(static=True, default=False)
+    checkpoint: bool | str | int = eqx.field(static=True, default=False)
     init_amplitude: float = eqx.field(static=True, default=0.3)
 
     @property
@@ -130,12 +132,12 @@ class Task(eqx.Module):
         return p.init(key, amplitude=amplitude)
 
     def with_options(self, *, integrator=None, checkpoint=None, n_steps=None) -> Task:
-        """A copy with another integrator, checkpointing flag or number of steps."""
+        """A copy with another integrator, checkpoint policy (as for ``simulate``) or number of steps."""
         task = self
         if integrator is not None:
             task = eqx.tree_at(lambda t: t.integrator, task, integrator)
         if checkpoint is not None:
-            task = dataclasses.replace(task, checkpoint=bool(checkpoint))
+            task = dataclasses.replace(task, checkpoint=check_checkpoint(checkpoint))
         if n_steps is not None:
             task = dataclasses.replace(task, n_steps=int(n_steps))
             if isinstance(task.parameterization, SampledControls):
@@ -195,7 +197,7 @@ def parallel_park(
     t_final: float = 10.0,
     n_steps: int = 100,
     integrator: AbstractIntegrator | None = None,
-    checkpoint: bool = False,
+    checkpoint: bool | str | int = False,
     max_steer: float = 1.0,
 ) -> Task:
     """Car parallel parking: from rest at ``(0, 0, 0)`` to rest at ``(0, l/2, 0)`` (half the axle
@@ -232,7 +234,7 @@ def u_turn(
     n_steps: int = 120,
     width: float = 1.0,
     integrator: AbstractIntegrator | None = None,
-    checkpoint: bool = False,
+    checkpoint: bool | str | int = False,
     max_steer: float = 1.0,
 ) -> Task:
     """Car U-turn in a lane of ``width``: from rest at ``(0, -width/4, 0)`` to rest at
@@ -274,7 +276,7 @@ def forward_gait(
     n_terms: int = 1,
     frequency: float = 2.0,
     integrator: AbstractIntegrator | None = None,
-    checkpoint: bool = False,
+    checkpoint: bool | str | int = False,
 ) -> Task:
     """Snakeboard forward gait: from rest, the periodic gait (rotor and steering torques, sums of
     ``n_terms`` sinusoids with free amplitudes, shared frequencies and phases) that maximises the
@@ -312,7 +314,7 @@ def reach(
     max_steer: float = 1.0,
     frequency: float = 2.0,
     integrator: AbstractIntegrator | None = None,
-    checkpoint: bool = False,
+    checkpoint: bool | str | int = False,
 ) -> Task:
     """Snakeboard reach: from rest at the origin to ``goal = (x, y, theta)`` with the board at
     rest; per-step torques initialised from a gait, ``|f| <= max_torque``, ``|phi| <= max_steer``."""
