@@ -210,6 +210,97 @@ def headline(args, log):
     return rows
 
 
+C_SOURCE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "c", "rdp_snakeboard.c")
+
+
+def compiled_c(args, headline_rows, log):
+    """The same snakeboard RDP rollout (alpha = 1/2, exp, positions only) in C, compiled here with
+    ``cc -O3 -march=native -ffast-math -fopenmp``: a scalar loop per trajectory and a loop
+    vectorised across trajectories, on one thread and on every core (OpenMP). Same maneuvers
+    and initial momenta as ours; the positions must agree with ``lj.simulate`` to round-off.
+    Returns rows, or [] when no C compiler is found."""
+    import ctypes
+    import shutil
+    import subprocess
+    import tempfile
+
+    cc = shutil.which(os.environ.get("CC", "cc")) or shutil.which("gcc")
+    if cc is None:
+        log("  no C compiler: skipped")
+        return []
+    lib_path = os.path.join(tempfile.mkdtemp(prefix="ldap_jax_bench_"), "librdp.so")
+    flags = ["-O3", "-march=native", "-ffast-math", "-fopenmp", "-shared", "-fPIC"]
+    subprocess.run([cc, *flags, C_SOURCE, "-o", lib_path, "-lm"], check=True)
+    lib = ctypes.CDLL(lib_path)
+    system = SYSTEMS["snakeboard"]
+    b, n, t_final = args.batch, args.steps, 10.0
+    h = t_final / n
+    q0, qdot0, ctl = maneuvers(system, b)
+    st = jax.vmap(lambda a, v: lj.RDP().init(system, jnp.asarray(h), a, v, None))(q0, qdot0)
+    init = np.stack(
+        [
+            q0[:, 2],
+            q0[:, 0],
+            q0[:, 1],
+            q0[:, 3],
+            q0[:, 4],
+            st.pu[:, 0],
+            st.pu[:, 1],
+            st.mu[:, 0],
+            st.mu[:, 1],
+        ],
+        1,
+    )
+    init = np.ascontiguousarray(init, np.float64)
+    ctl_np = np.ascontiguousarray(np.stack([ctl.amplitude, ctl.frequency, ctl.phase], 1), np.float64)
+    q = np.zeros((b, n + 1, 5))
+    ptr = ctypes.POINTER(ctypes.c_double)
+    dbl = ctypes.c_double
+    call_args = (
+        ctypes.c_int(b),
+        ctypes.c_int(n),
+        ctypes.c_int(ctl_np.shape[-1]),
+        dbl(h),
+        *(dbl(float(getattr(system, k))) for k in ("m", "l", "I", "J")),
+        init.ctypes.data_as(ptr),
+        ctl_np.ctypes.data_as(ptr),
+        q.ctypes.data_as(ptr),
+    )
+    ours = np.asarray(rollout_fn(system, lj.RDP(), n, t_final=t_final)(q0, qdot0, ctl))
+    best_ours = max(r["steps_per_s_q"] for r in headline_rows) if headline_rows else None
+    rows = []
+    for fn, label in (
+        ("rollout", "scalar loop per trajectory"),
+        ("rollout_simd", "vectorised across trajectories"),
+    ):
+        for threads in sorted({1, os.cpu_count() or 1}):
+            lib.set_threads(threads)
+            f = getattr(lib, fn)
+            f(*call_args)
+            diff = float(np.max(np.abs(q - ours)))
+            wall = []
+            for _ in range(args.repeats):
+                t = time.perf_counter()
+                f(*call_args)
+                wall.append(time.perf_counter() - t)
+            row = dict(
+                variant=label,
+                threads=threads,
+                B=b,
+                N=n,
+                wall_min=min(wall),
+                steps_per_s=b * n / min(wall),
+                max_abs_diff_vs_ours=diff,
+            )
+            row["ours_best_over_c"] = best_ours / row["steps_per_s"] if best_ours else None
+            rows.append(row)
+            log(
+                f"  C {label}, {threads} thread(s): {row['steps_per_s']:.3g} steps/s "
+                f"(|q - ours| <= {diff:.1e})"
+            )
+    return rows
+
+
 def _terminal_loss(system, q0, qdot0, ctl, n, checkpoint):
     """Sum over the batch of ``|(x_N, y_N)|^2``: the loss whose gradient is timed."""
 
@@ -430,6 +521,23 @@ def write_markdown(path, res):
             f"| {r['layout']} | {r['steps_per_s_q']:.3g} | {r['steps_per_s_traj']:.3g} "
             f"| {r['forward_s']:.3f} | {r['grad_s']:.3f} | {r['grad_ratio']:.2f} |"
         )
+    if res.get("compiled_c"):
+        lines += [
+            "",
+            "## Against compiled C (snakeboard, RDP, float64, positions only, B x N = 1000 x 1000)",
+            "",
+            "The same step in C (`scripts/c/rdp_snakeboard.c`, `cc -O3 -march=native -ffast-math -fopenmp`), "
+            "same maneuvers; ratio = our best headline rate (positions) / C's.",
+            "",
+            "| C variant | threads | steps/s | max abs diff of q vs ours | ours / C |",
+            "|---|---|---|---|---|",
+        ]
+        for r in res["compiled_c"]:
+            ratio = "n/a" if r["ours_best_over_c"] is None else f"{r['ours_best_over_c']:.2f}"
+            lines.append(
+                f"| {r['variant']} | {r['threads']} | {r['steps_per_s']:.3g} "
+                f"| {r['max_abs_diff_vs_ours']:.1e} | {ratio} |"
+            )
     lines += [
         "",
         "## Forward throughput (steps/s)",
@@ -548,6 +656,8 @@ def main():
         args_tp = args
     log("headline (snakeboard RDP, B = N = 1000)")
     res["headline"] = headline(args, log)
+    log("compiled C baseline (same step, same maneuvers)")
+    res["compiled_c"] = compiled_c(args, res["headline"], log)
     log("compile times")
     res["compile"] = compile_times(log)
     log("forward throughput")
