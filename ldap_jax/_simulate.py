@@ -150,7 +150,9 @@ def simulate(
         n_steps: number of steps N (static: each new N compiles once).
         integrator: default ``RDP(alpha=0.5, retraction="exp")``.
         t0: start time.
-        checkpoint: memory policy for reverse mode: ``False`` (store every step's internals),
+        checkpoint: memory policy for reverse mode: ``False`` (the fastest: store every step's
+            internals; the car/snakeboard RDP kernel stores only each step's sin/cos values and
+            failure masks and recomputes its arithmetic),
             ``True``/``"step"`` (``jax.checkpoint`` on the scan body: O(N) states), ``"sqrt"``
             (nested: ~sqrt(N) checkpointed chunks of ~sqrt(N) steps, O(sqrt N) states for about one
             extra forward pass), or an integer chunk length.
