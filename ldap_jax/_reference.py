@@ -1,6 +1,8 @@
-"""High-accuracy reference solutions with diffrax (ground truth for tests and sweeps)."""
+"""High-accuracy reference solutions with diffrax (ground truth for tests and studies)."""
 
 from __future__ import annotations
+
+import warnings
 
 import diffrax
 import equinox as eqx
@@ -9,7 +11,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from ._controls import AbstractControls
+from ._controls import AbstractControls, Constant
+from ._results import RESULTS
+from ._validation import cast_floats, check_array, check_positive_int, check_scalar, input_result, is_concrete
+from ._validation import raise_if_concrete
 from .systems import AbstractSystem
 
 __all__ = ["reference", "Solution"]
@@ -19,100 +24,170 @@ class Solution(eqx.Module):
     """A reference solution sampled at ``ts``.
 
     Attributes:
-        t: sample times (T,). q: configurations (T, d). qdot: velocities (T, d).
-        result: 0 when diffrax succeeded (``diffrax.RESULTS``), else the failure code.
+        t: sample times (s), (T,).
+        q: configurations (m, rad), (T, d). NaN at the samples the solve did not reach.
+        qdot: velocities (m/s, rad/s), (T, d). NaN likewise.
+        result: a :class:`~ldap_jax.RESULTS` item: ``successful``; ``nonfinite`` (the state or
+            the vector field turned non-finite, or the step size collapsed); ``singular`` (the
+            system's ``singularity``, e.g. the snakeboard's ``cos(phi)``, changed sign);
+            ``max_steps_reached``; ``invalid_input`` (a traced input failed its check).
         num_steps: accepted + rejected steps taken by the adaptive solver.
     """
 
     t: Float[Array, " T"]
     q: Float[Array, "T d"]
     qdot: Float[Array, "T d"]
-    result: Int[Array, ""]
+    result: RESULTS
     num_steps: Int[Array, ""]
 
     @property
     def failed(self):
-        return self.result != 0
+        return self.result != RESULTS.successful
+
+
+def _check_ts(ts: Array, t0: ArrayLike) -> None:
+    if ts.ndim != 1 or ts.shape[0] < 1:
+        raise ValueError(f"'ts' must be a non-empty 1-d array of times, got shape {ts.shape}")
+    with jax.ensure_compile_time_eval():
+        if is_concrete((ts, t0)):
+            ts_np, t0_ = np.asarray(ts, float), float(np.asarray(t0))
+            if not np.all(np.isfinite(ts_np)) or not np.isfinite(t0_):
+                raise ValueError(f"'ts' and 't0' must be finite, got ts={ts_np}, t0={t0_}")
+            if np.any(np.diff(ts_np) < 0) or ts_np[0] < t0_:
+                raise ValueError(f"'ts' must be non-decreasing and start at or after t0={t0_}, got {ts_np}")
 
 
 def reference(
     system: AbstractSystem,
     q0: ArrayLike,
     qdot0: ArrayLike,
-    controls: AbstractControls,
+    controls: AbstractControls | None,
     ts: ArrayLike,
     *,
     t0: ArrayLike = 0.0,
     rtol: float = 1e-11,
     atol: float = 1e-11,
     solver: diffrax.AbstractSolver | None = None,
-    max_steps: int = 2**22,
+    max_steps: int = 200_000,
+    check_constraints: bool = True,
 ) -> Solution:
     """Solve the continuous Lagrange-d'Alembert equations with diffrax at tight tolerances.
 
     Integrates the minimal form ``(q, v)`` of the equations of motion (the system's
     ``velocity_dynamics``, checked against the full KKT form ``M qddot = F + omega^T lambda``
-    in the tests) with Dopri8 and a PID step-size controller.
+    in the tests) with Dopri8 and a PID step-size controller. The solve stops at once when the
+    state turns non-finite or the system's singularity is crossed (diffrax events), and after
+    ``max_steps`` steps: it cannot hang. Inputs are checked as in :func:`~ldap_jax.simulate`.
 
     Args:
-        system, q0, qdot0, controls: as for :func:`ldap_jax.simulate`.
-        ts: non-decreasing sample times (T,), all ``>= t0``; e.g. ``traj.t`` of a
+        system, q0, qdot0, controls: as for :func:`ldap_jax.simulate` (``controls=None``: none).
+        ts: non-decreasing, finite sample times (T,), all ``>= t0``; e.g. ``traj.t`` of a
             :func:`~ldap_jax.simulate` run, or just ``[t_final]``.
         t0: the time at which ``(q0, qdot0)`` is given (default 0, as for :func:`~ldap_jax.simulate`).
-        rtol, atol: tolerances (float64 recommended: enable ``jax_enable_x64``).
+        rtol, atol: positive tolerances (float64 recommended: enable ``jax_enable_x64``).
         solver: a diffrax solver (default ``diffrax.Dopri8()``).
-        max_steps: cap on solver steps.
+        max_steps: cap on solver steps (accepted and rejected).
+        check_constraints: check that ``qdot0`` satisfies the constraints.
 
     Returns:
         :class:`Solution` with ``q`` and ``qdot`` at ``ts``.
+
+    Raises:
+        TypeError, ValueError: bad inputs (the message names the argument); on traced values
+            the result is ``invalid_input`` instead.
     """
-    ts = jnp.asarray(ts)
-    if ts.ndim != 1 or ts.shape[0] < 1:
-        raise ValueError(f"'ts' must be a non-empty 1-d array of times, got shape {ts.shape}")
-    for name, x in (("q0", q0), ("qdot0", qdot0)):
-        if jnp.shape(x) != (system.n_config,):
-            raise ValueError(f"'{name}' must have shape ({system.n_config},), got {jnp.shape(x)}")
+    if not isinstance(system, AbstractSystem):
+        raise TypeError(f"'system' must be an ldap_jax system (e.g. lj.Car, lj.Snakeboard), got {type(system)}")
+    if controls is None:
+        controls = Constant(jnp.zeros(system.n_controls, jnp.result_type(float)))
+    if not isinstance(controls, AbstractControls):
+        raise TypeError(f"'controls' must be ldap_jax open-loop controls (e.g. lj.Sinusoids) or None, got {type(controls)}")
     if controls.n_channels != system.n_controls:
         raise ValueError(
-            f"'controls' has {controls.n_channels} channels, the system takes {system.n_controls}"
+            f"'controls' has {controls.n_channels} channels, {type(system).__name__} takes {system.n_controls}"
         )
-    if jnp.ndim(t0) != 0:
-        raise ValueError(f"'t0' must be a scalar, got shape {jnp.shape(t0)}")
-    if not isinstance(ts, jax.core.Tracer) and not isinstance(t0, jax.core.Tracer):
-        ts_np = np.asarray(ts)
-        if np.any(np.diff(ts_np) < 0) or ts_np[0] < float(t0):
-            raise ValueError(f"'ts' must be non-decreasing and start at or after t0={float(t0)}, got {ts_np}")
-    return _reference(system, q0, qdot0, controls, ts, t0, rtol, atol, solver or diffrax.Dopri8(), max_steps)
+    d = system.n_config
+    q0 = check_array("q0", q0, (d,), f"for {type(system).__name__}")
+    qdot0 = check_array("qdot0", qdot0, (d,), f"for {type(system).__name__}")
+    t0 = check_scalar("t0", t0)
+    try:
+        ts = jnp.asarray(ts)
+    except TypeError as err:
+        raise TypeError(f"'ts' must be an array of times, got {ts!r}") from err
+    _check_ts(ts, t0)
+    for name, tol in (("rtol", rtol), ("atol", atol)):
+        if isinstance(tol, bool) or not isinstance(tol, (int, float)) or not (tol > 0 and np.isfinite(tol)):
+            raise ValueError(f"'{name}' must be a positive finite number, got {tol!r}")
+    max_steps = check_positive_int("max_steps", max_steps)
+    dtype = jnp.result_type(q0, qdot0)
+    if dtype == jnp.float32 and not jax.config.jax_enable_x64:
+        warnings.warn(
+            "ldap_jax.reference runs in float32 because jax_enable_x64 is off: its tolerances cannot be met; "
+            'enable float64 (jax.config.update("jax_enable_x64", True))',
+            stacklevel=2,
+        )
+    raise_if_concrete(system, None, q0, qdot0, controls, t0, None, check_constraints)
+    return _reference(
+        system, q0, qdot0, controls, ts, jnp.asarray(t0), float(rtol), float(atol), solver or diffrax.Dopri8(),
+        max_steps, bool(check_constraints),
+    )
 
 
 @eqx.filter_jit
-def _reference(system, q0, qdot0, controls, ts, t0, rtol, atol, solver, max_steps):
-    dtype = jnp.result_type(q0, qdot0, ts)
-    from ._simulate import _cast
-
-    system, controls = _cast(system, dtype), _cast(controls, dtype)
-    q0, qdot0, ts = jnp.asarray(q0, dtype), jnp.asarray(qdot0, dtype), jnp.asarray(ts, dtype)
-    t0 = jnp.asarray(t0, dtype)
-    qdot0 = system.consistent_qdot(q0, qdot0, controls(t0))
-    v0 = system.velocities_from_qdot(q0, qdot0)
+def _reference(system, q0, qdot0, controls, ts, t0, rtol, atol, solver, max_steps, check_constraints):
+    dtype = jnp.result_type(q0, qdot0)
+    system, controls = cast_floats((system, controls), dtype)
+    q0, qdot0, ts, t0 = (jnp.asarray(x, dtype) for x in (q0, qdot0, ts, t0))
+    c0 = controls(t0)
+    qdot0 = system.consistent_qdot(q0, qdot0, c0)
+    ok_ts = jnp.all(jnp.isfinite(ts)) & jnp.all(jnp.diff(ts) >= 0) & (ts[0] >= t0)
+    initial = input_result(system, None, q0, qdot0, t0, None, check_constraints)
+    valid = (initial == RESULTS.successful) & ok_ts & jnp.all(jnp.isfinite(c0))
+    # an invalid member integrates a harmless problem (rest, a zero-length interval) so a vmapped
+    # batch does not pay for it, and is reported as invalid
+    q_start = jnp.where(valid, q0, jnp.zeros_like(q0))
+    v_start = jnp.where(valid, system.velocities_from_qdot(q0, qdot0), 0.0)
+    t_end = jnp.where(valid, ts[-1], t0)
+    ts_safe = jnp.where(valid, ts, t0)
 
     def vector_field(t, y, args):
         return system.ode(y, controls(t))
+
+    def nonfinite(t, y, args, **kwargs):
+        return ~(jnp.all(jnp.isfinite(y[0])) & jnp.all(jnp.isfinite(y[1])))
+
+    def singularity(t, y, args, **kwargs):
+        return system.singularity(y[0])
 
     sol = diffrax.diffeqsolve(
         diffrax.ODETerm(vector_field),
         solver,
         t0=t0,
-        t1=ts[-1],
+        t1=t_end,
         dt0=None,
-        y0=(q0, v0),
-        saveat=diffrax.SaveAt(ts=ts),
+        y0=(q_start, v_start),
+        saveat=diffrax.SaveAt(ts=ts_safe),
         stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
         max_steps=max_steps,
+        event=diffrax.Event((nonfinite, singularity)),
         throw=False,
     )
     q, v = sol.ys
     u_kin = jax.vmap(lambda t: system.inputs(controls(t))[1])(ts)
     qdot = jax.vmap(system.qdot_from_velocities)(q, v, u_kin)
-    result = jnp.where(sol.result == diffrax.RESULTS.successful, 0, 1).astype(jnp.int32)
-    return Solution(t=ts, q=q, qdot=qdot, result=result, num_steps=sol.stats["num_steps"])
+    d_res = diffrax.RESULTS
+    hit_nonfinite, hit_singular = sol.event_mask if sol.event_mask is not None else (False, False)
+    result = RESULTS.where(
+        sol.result == d_res.successful,
+        RESULTS.successful,
+        RESULTS.where(
+            sol.result == d_res.max_steps_reached,
+            RESULTS.max_steps_reached,
+            RESULTS.where((sol.result == d_res.event_occurred) & hit_singular & ~hit_nonfinite, RESULTS.singular, RESULTS.nonfinite),
+        ),
+    )
+    result = RESULTS.where(valid, result, RESULTS.invalid_input)
+    # samples the solve did not reach (diffrax fills them with inf) are NaN, as in simulate
+    row_ok = valid & jnp.all(jnp.isfinite(q), axis=1) & jnp.all(jnp.isfinite(qdot), axis=1)
+    mask = jnp.where(row_ok, 1.0, jnp.nan).astype(dtype)[:, None]
+    return Solution(t=ts, q=q * mask, qdot=qdot * mask, result=result, num_steps=sol.stats["num_steps"])

@@ -1,20 +1,21 @@
 """Optimal control tasks for the car and the snakeboard, and their replay on the reference.
 
-A :class:`Task` bundles a system, an initial state, a horizon, a control parameterization, an
-integrator (the optimizer's dynamics model; RDP by default) and the weights of the loss
+A :class:`Task` is a system, an initial state, a horizon and a control parameterization, with
 
-    J = w_heading e_1^2 + w_position (e_2^2 + e_3^2)             e = log(g_goal^-1 g_N)
-        + w_stop |(xdot, ydot, thetadot)_N|^2                      come to rest
-        + w_effort sum_k h |c_k / scale|^2                         control effort
-        + w_bound (sum_k h (pen(q_k) + pen(c_k)))                  state and control bounds
-        - w_forward <(x_N, y_N) - (x_0, y_0), (cos theta_0, sin theta_0)>   forward displacement
+* an *objective*: a tuple of cost terms (:mod:`._costs`, e.g. the control effort), and
+* *constraints*: a terminal pose (``goal``), the system at rest at ``t_N`` (``rest``) and bounds
+  on the configuration and the controls at the nodes.
 
-with ``pen`` the quadratic exterior penalty of :func:`bound_penalty`.
+:func:`~ldap_jax.control.solve` treats the constraints as hard (equalities and inequalities of
+an interior-point method); :func:`~ldap_jax.control.optimize` minimises the penalty form
+:meth:`Task.loss`, the objective plus quadratic penalties of the constraints weighted by
+:class:`Penalty`. The dynamics model is the task's integrator (``lj.RDP()`` by default).
 """
 
 from __future__ import annotations
 
 import dataclasses
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -23,31 +24,45 @@ import numpy as np
 from jaxtyping import Array, PRNGKeyArray
 
 from .._reference import reference
-from .._scan import check_checkpoint
+from .._rollout import check_checkpoint
 from .._simulate import Trajectory, simulate
+from .._validation import check_positive_int
 from ..integrators import RDP, AbstractIntegrator
 from ..systems import AbstractSystem, Car, Snakeboard
-from ._costs import bound_penalty, effort_cost, pose_error, wrap_angle
+from ._costs import AbstractTerm, BoundPenalty, Effort, Forward, TerminalPose, TerminalRest, evaluate_terms
+from ._costs import pose_error, wrap_angle
 from ._parameterizations import AbstractParameterization, SampledControls, SinusoidGait
 
-__all__ = ["Task", "parallel_park", "u_turn", "forward_gait", "reach", "TASKS", "replay", "gradient_memory"]
+__all__ = ["Task", "Penalty", "parallel_park", "u_turn", "forward_gait", "reach", "TASKS", "replay", "gradient_memory"]
 
 _INF = float("inf")
 
 
+class Penalty(NamedTuple):
+    """Weights of the penalty form (:meth:`Task.loss`): heading and position error at the goal,
+    the rest condition, and the bounds."""
+
+    heading: float = 100.0
+    position: float = 100.0
+    rest: float = 10.0
+    bounds: float = 100.0
+
+
 class Task(eqx.Module):
-    """An optimal control problem: ``loss(params)`` through a differentiable rollout.
+    """An optimal control problem through a differentiable rollout.
 
     Attributes:
         name: task name. system: the model. q0, qdot0: initial state (on the constraints).
         t_final: horizon (s). n_steps: steps of the rollout (static).
-        parameterization: params -> controls. integrator: the dynamics model (default RDP).
-        goal: goal pose ``(x, y, theta)`` or None. weights: see the module docstring.
-        q_lower, q_upper: bounds on ``q`` (5,), infinite entries are off.
-        c_max: bound on ``|c|`` per channel (n_channels,), infinite entries are off.
+        parameterization: params -> controls. integrator: the dynamics model.
+        objective: cost terms, summed (e.g. ``(Effort(scale),)``).
+        goal: terminal pose ``(x, y, theta)`` or None. rest: indices of the minimal velocities
+            held at zero at ``t_N`` (``TerminalRest``), or ``()``.
+        q_lower, q_upper: bounds on ``q`` at the nodes (d,), infinite entries are off.
+        c_lower, c_upper: bounds on the controls at the nodes (n_channels,), physical units.
+        penalty: weights of the penalty form. objective_weight: the objective's weight there.
         guess: optional gait whose samples initialise sampled controls.
-        checkpoint: the rollout's memory policy in reverse mode, as for
-            :func:`~ldap_jax.simulate` (``False``, ``True``/``"step"``, ``"sqrt"`` or a chunk length).
+        checkpoint: the rollout's memory policy in reverse mode (as for :func:`~ldap_jax.simulate`).
     """
 
     name: str = eqx.field(static=True)
@@ -58,16 +73,15 @@ class Task(eqx.Module):
     n_steps: int = eqx.field(static=True)
     parameterization: AbstractParameterization
     integrator: AbstractIntegrator
+    objective: tuple[AbstractTerm, ...]
     goal: Array | None
-    w_heading: Array
-    w_position: Array
-    w_stop: Array
-    w_effort: Array
-    w_bound: Array
-    w_forward: Array
+    rest: tuple[int, ...] = eqx.field(static=True)
     q_lower: Array
     q_upper: Array
-    c_max: Array
+    c_lower: Array
+    c_upper: Array
+    penalty: Penalty
+    objective_weight: Array
     guess: SinusoidGait | None = None
     checkpoint: bool | str | int = eqx.field(static=True, default=False)
     init_amplitude: float = eqx.field(static=True, default=0.3)
@@ -91,34 +105,41 @@ class Task(eqx.Module):
             integrator=self.integrator,
             checkpoint=self.checkpoint,
             check_constraints=False,
+            divergence=None,
         )
 
-    def loss(self, params) -> tuple[Array, dict]:
-        """``(J, terms)``: the scalar loss and its terms (see the module docstring)."""
-        traj = self.rollout(params)
-        ctl = self.controls(params)
-        c = jax.vmap(ctl)(traj.t)  # control values at the nodes
-        h = self.h
-        q_n = traj.q[-1]
-        scale = self.parameterization.scale
+    def constraint_terms(self) -> dict[str, AbstractTerm]:
+        """The constraints as penalty terms (weights of :attr:`penalty`)."""
         terms = {}
         if self.goal is not None:
-            e = pose_error(q_n, self.goal)
-            terms["pose"] = self.w_heading * e[0] ** 2 + self.w_position * (e[1] ** 2 + e[2] ** 2)
-        terms["stop"] = self.w_stop * jnp.sum(traj.qdot[-1, :3] ** 2)
-        terms["effort"] = self.w_effort * effort_cost(c, h, scale)
-        pen_q = jax.vmap(lambda q: bound_penalty(q, self.q_lower, self.q_upper))(traj.q)
-        cmax = self.c_max / scale
-        pen_c = jax.vmap(lambda v: bound_penalty(v / scale, -cmax, cmax))(c)
-        terms["bounds"] = self.w_bound * h * (jnp.sum(pen_q) + jnp.sum(pen_c))
-        th0 = self.q0[2]
-        forward = (q_n[0] - self.q0[0]) * jnp.cos(th0) + (q_n[1] - self.q0[1]) * jnp.sin(th0)
-        terms["forward"] = -self.w_forward * forward
-        total = sum(terms.values())
-        return total, terms
+            terms["pose"] = TerminalPose(self.goal, self.penalty.heading, self.penalty.position)
+        if self.rest:
+            terms["rest"] = TerminalRest(self.rest, self.penalty.rest)
+        terms["bounds"] = BoundPenalty(
+            self.q_lower, self.q_upper, self.c_lower, self.c_upper, self.parameterization.scale, self.penalty.bounds
+        )
+        return terms
+
+    def objective_terms(self) -> dict[str, AbstractTerm]:
+        names = [type(t).__name__.lower() for t in self.objective]
+        return {n if names.count(n) == 1 else f"{n}{i}": t for i, (n, t) in enumerate(zip(names, self.objective))}
+
+    def terms(self, traj: Trajectory, params) -> dict[str, Array]:
+        """Every term on a trajectory (objective terms scaled by ``objective_weight``)."""
+        ctl = self.controls(params)
+        c = jax.vmap(ctl)(traj.t)
+        obs = _NodeObs(traj.q, traj.qdot)
+        out = {k: self.objective_weight * v for k, v in evaluate_terms(self.objective_terms(), self.system, obs, c, self.h, self.q0).items()}
+        out.update(evaluate_terms(self.constraint_terms(), self.system, obs, c, self.h, self.q0))
+        return out
+
+    def loss(self, params) -> tuple[Array, dict]:
+        """The penalty form ``(J, terms)``: the weighted objective plus the constraint penalties."""
+        terms = self.terms(self.rollout(params), params)
+        return sum(terms.values()), terms
 
     def value(self, params) -> Array:
-        """The scalar loss."""
+        """The scalar penalty-form loss."""
         return self.loss(params)[0]
 
     def init(self, key: PRNGKeyArray | None = None, *, amplitude: float | None = None):
@@ -131,15 +152,19 @@ class Task(eqx.Module):
             return jax.vmap(self.guess.controls(gp))(ts) / p.scale[None, :]
         return p.init(key, amplitude=amplitude)
 
-    def with_options(self, *, integrator=None, checkpoint=None, n_steps=None) -> Task:
-        """A copy with another integrator, checkpoint policy (as for ``simulate``) or number of steps."""
+    def with_options(self, *, integrator=None, checkpoint=None, n_steps=None, goal=None, system=None) -> Task:
+        """A copy with another integrator, checkpoint policy, number of steps, goal or system."""
         task = self
         if integrator is not None:
             task = eqx.tree_at(lambda t: t.integrator, task, integrator)
+        if system is not None:
+            task = eqx.tree_at(lambda t: t.system, task, system)
+        if goal is not None:
+            task = eqx.tree_at(lambda t: t.goal, task, jnp.asarray(goal, float), is_leaf=lambda x: x is None)
         if checkpoint is not None:
             task = dataclasses.replace(task, checkpoint=check_checkpoint(checkpoint))
         if n_steps is not None:
-            task = dataclasses.replace(task, n_steps=int(n_steps))
+            task = dataclasses.replace(task, n_steps=check_positive_int("n_steps", n_steps))
             if isinstance(task.parameterization, SampledControls):
                 task = dataclasses.replace(
                     task, parameterization=dataclasses.replace(task.parameterization, n_steps=int(n_steps))
@@ -147,17 +172,61 @@ class Task(eqx.Module):
         return task
 
 
-def _task(name, system, q0, qdot0, t_final, n_steps, parameterization, integrator, **kw) -> Task:
+class _NodeObs(NamedTuple):
+    q: Array
+    qdot: Array
+
+
+def make_task(
+    name: str,
+    system: AbstractSystem,
+    q0,
+    qdot0,
+    t_final: float,
+    n_steps: int,
+    parameterization: AbstractParameterization,
+    integrator: AbstractIntegrator | None,
+    *,
+    objective: tuple[AbstractTerm, ...],
+    goal=None,
+    rest: tuple[int, ...] = (),
+    q_lower=None,
+    q_upper=None,
+    c_max=None,
+    penalty: Penalty = Penalty(),
+    objective_weight: float = 1.0,
+    guess: SinusoidGait | None = None,
+    checkpoint=False,
+    init_amplitude: float = 0.3,
+) -> Task:
+    """Build a :class:`Task`, checking its pieces (the message names the argument)."""
     d, n = system.n_config, system.n_controls
-    q0, qdot0 = jnp.asarray(q0, float), jnp.asarray(qdot0, float)
+    f = lambda x: jnp.asarray(x, float)  # noqa: E731
+    q0, qdot0 = f(q0), f(qdot0)
+    if q0.shape != (d,) or qdot0.shape != (d,):
+        raise ValueError(f"'q0' and 'qdot0' must have shape ({d},), got {q0.shape}, {qdot0.shape}")
     viol = float(system.constraint_residual(q0, system.consistent_qdot(q0, qdot0, jnp.zeros(n))))
     if not viol < 1e-10:
         raise ValueError(f"'qdot0' violates the constraints of {type(system).__name__} ({viol:.2e})")
-    if isinstance(n_steps, bool) or not isinstance(n_steps, int) or n_steps < 1:
-        raise ValueError(f"'n_steps' must be a positive integer, got {n_steps!r}")
+    n_steps = check_positive_int("n_steps", n_steps)
     if not float(t_final) > 0:
         raise ValueError(f"'t_final' must be positive, got {t_final}")
-    f = lambda x: jnp.asarray(x, float)  # noqa: E731
+    q_lower = f(np.full(d, -_INF) if q_lower is None else q_lower)
+    q_upper = f(np.full(d, _INF) if q_upper is None else q_upper)
+    c_max = f(np.full(n, _INF) if c_max is None else c_max)
+    if np.any(np.asarray(q_lower) >= np.asarray(q_upper)) or np.any(np.asarray(c_max) <= 0):
+        raise ValueError(f"the bounds are empty: q_lower={q_lower}, q_upper={q_upper}, c_max={c_max}")
+    if np.any(np.asarray(q0) < np.asarray(q_lower)) or np.any(np.asarray(q0) > np.asarray(q_upper)):
+        raise ValueError(f"'q0' {q0} lies outside the bounds [{q_lower}, {q_upper}]")
+    if goal is not None:
+        goal = f(goal)
+        if goal.shape != (3,):
+            raise ValueError(f"'goal' must be a pose (x, y, theta), got shape {goal.shape}")
+        g_q = np.concatenate([np.asarray(goal), np.full(d - 3, np.nan)])
+        lo, hi = np.asarray(q_lower), np.asarray(q_upper)
+        outside = (g_q < lo) | (g_q > hi)
+        if np.any(outside[:3]):
+            raise ValueError(f"'goal' {np.asarray(goal)} lies outside the bounds of (x, y, theta): [{lo[:3]}, {hi[:3]}]")
     return Task(
         name=name,
         system=system,
@@ -167,28 +236,19 @@ def _task(name, system, q0, qdot0, t_final, n_steps, parameterization, integrato
         n_steps=n_steps,
         parameterization=parameterization,
         integrator=integrator if integrator is not None else RDP(),
-        goal=None if kw.get("goal") is None else f(kw["goal"]),
-        w_heading=f(kw.get("w_heading", 0.0)),
-        w_position=f(kw.get("w_position", 0.0)),
-        w_stop=f(kw.get("w_stop", 0.0)),
-        w_effort=f(kw.get("w_effort", 0.0)),
-        w_bound=f(kw.get("w_bound", 0.0)),
-        w_forward=f(kw.get("w_forward", 0.0)),
-        q_lower=f(kw.get("q_lower", np.full(d, -_INF))),
-        q_upper=f(kw.get("q_upper", np.full(d, _INF))),
-        c_max=f(kw.get("c_max", np.full(n, _INF))),
-        guess=kw.get("guess"),
-        checkpoint=kw.get("checkpoint", False),
-        init_amplitude=kw.get("init_amplitude", 0.3),
+        objective=tuple(objective),
+        goal=goal,
+        rest=tuple(int(i) for i in rest),
+        q_lower=q_lower,
+        q_upper=q_upper,
+        c_lower=-c_max,
+        c_upper=c_max,
+        penalty=penalty,
+        objective_weight=f(objective_weight),
+        guess=guess,
+        checkpoint=check_checkpoint(checkpoint),
+        init_amplitude=init_amplitude,
     )
-
-
-def default_car() -> Car:
-    return Car(m=1.0, I=0.1, K=0.2, rho=0.1, l=0.5)
-
-
-def default_snakeboard() -> Snakeboard:
-    return Snakeboard(m=1.0, l=0.5, I=0.05, J=0.02)
 
 
 def parallel_park(
@@ -201,26 +261,25 @@ def parallel_park(
     max_steer: float = 1.0,
 ) -> Task:
     """Car parallel parking: from rest at ``(0, 0, 0)`` to rest at ``(0, l/2, 0)`` (half the axle
-    distance sideways) in ``t_final``; per-step controls; ``|sigma| <= max_steer``."""
-    car = system if system is not None else default_car()
+    distance sideways) in ``t_final`` (s), minimising the effort; per-step controls (wheel torque
+    in N m, steering rate in 1/s); ``|sigma| <= max_steer`` (``sigma = tan`` of the steering angle)."""
+    car = system if system is not None else Car()
     l = float(car.l)
-    z = np.zeros(5)
-    inertia = float(car.I + car.m * car.rho**2)
-    return _task(
+    scale = [float(car.I + car.m * car.rho**2), 0.5]
+    return make_task(
         "parallel_park",
         car,
-        z,
-        z,
+        np.zeros(5),
+        np.zeros(5),
         t_final,
         n_steps,
-        SampledControls(t_final, n_steps, [inertia, 0.5]),
+        SampledControls(t_final, n_steps, scale),
         integrator,
+        objective=(Effort(jnp.asarray(scale)),),
+        objective_weight=1e-5,
         goal=[0.0, 0.5 * l, 0.0],
-        w_heading=100.0,
-        w_position=100.0 / l**2,
-        w_stop=10.0,
-        w_effort=1e-5,
-        w_bound=100.0,
+        rest=(0,),
+        penalty=Penalty(heading=100.0, position=100.0 / l**2, rest=10.0, bounds=100.0),
         q_lower=[-_INF, -_INF, -_INF, -_INF, -max_steer],
         q_upper=[_INF, _INF, _INF, _INF, max_steer],
         checkpoint=checkpoint,
@@ -237,28 +296,26 @@ def u_turn(
     checkpoint: bool | str | int = False,
     max_steer: float = 1.0,
 ) -> Task:
-    """Car U-turn in a lane of ``width``: from rest at ``(0, -width/4, 0)`` to rest at
+    """Car U-turn in a lane of ``width`` (m): from rest at ``(0, -width/4, 0)`` to rest at
     ``(0, width/4, pi)`` with the rear axle inside ``|y| <= width/2`` and ``|sigma| <= max_steer``
     (minimum turning radius ``l / max_steer``: with the defaults a plain U-turn needs 1 m, so the
-    car must back up)."""
-    car = system if system is not None else default_car()
-    inertia = float(car.I + car.m * car.rho**2)
-    q0 = np.array([0.0, -width / 4, 0.0, 0.0, 0.0])
-    return _task(
+    car must back up), minimising the effort."""
+    car = system if system is not None else Car()
+    scale = [float(car.I + car.m * car.rho**2), 0.5]
+    return make_task(
         "u_turn",
         car,
-        q0,
+        [0.0, -width / 4, 0.0, 0.0, 0.0],
         np.zeros(5),
         t_final,
         n_steps,
-        SampledControls(t_final, n_steps, [inertia, 0.5]),
+        SampledControls(t_final, n_steps, scale),
         integrator,
+        objective=(Effort(jnp.asarray(scale)),),
+        objective_weight=1e-5,
         goal=[0.0, width / 4, np.pi],
-        w_heading=100.0,
-        w_position=100.0,
-        w_stop=10.0,
-        w_effort=1e-5,
-        w_bound=1000.0,
+        rest=(0,),
+        penalty=Penalty(heading=100.0, position=100.0, rest=10.0, bounds=1000.0),
         init_amplitude=0.1,
         q_lower=[-_INF, -width / 2, -_INF, -_INF, -max_steer],
         q_upper=[_INF, width / 2, _INF, _INF, max_steer],
@@ -278,25 +335,23 @@ def forward_gait(
     integrator: AbstractIntegrator | None = None,
     checkpoint: bool | str | int = False,
 ) -> Task:
-    """Snakeboard forward gait: from rest, the periodic gait (rotor and steering torques, sums of
-    ``n_terms`` sinusoids with free amplitudes, shared frequencies and phases) that maximises the
-    displacement along the initial heading in ``t_final``, with ``|f| <= max_torque`` and
-    ``|phi| <= max_steer`` (well away from the singularity ``cos(phi) = 0``) as penalties."""
-    sb = system if system is not None else default_snakeboard()
-    z = np.zeros(5)
-    return _task(
+    """Snakeboard forward gait: from rest, the periodic gait (rotor and steering torques in N m,
+    sums of ``n_terms`` sinusoids with free amplitudes, shared frequencies and phases) that
+    maximises the displacement along the initial heading in ``t_final`` (s), with
+    ``|f| <= max_torque`` and ``|phi| <= max_steer`` (rad; well away from ``cos(phi) = 0``)."""
+    sb = system if system is not None else Snakeboard()
+    return make_task(
         "forward_gait",
         sb,
-        z,
-        z,
+        np.zeros(5),
+        np.zeros(5),
         t_final,
         n_steps,
         SinusoidGait(list(max_torque), n_terms=n_terms, frequency=frequency),
         integrator,
-        w_forward=1.0,
-        w_bound=1e4,
+        objective=(Forward(),),
+        penalty=Penalty(bounds=1e4),
         init_amplitude=0.1,
-        w_effort=0.0,
         q_lower=[-_INF, -_INF, -_INF, -_INF, -max_steer],
         q_upper=[_INF, _INF, _INF, _INF, max_steer],
         c_max=list(max_torque),
@@ -316,29 +371,29 @@ def reach(
     integrator: AbstractIntegrator | None = None,
     checkpoint: bool | str | int = False,
 ) -> Task:
-    """Snakeboard reach: from rest at the origin to ``goal = (x, y, theta)`` with the board at
-    rest; per-step torques initialised from a gait, ``|f| <= max_torque``, ``|phi| <= max_steer``."""
-    sb = system if system is not None else default_snakeboard()
-    z = np.zeros(5)
-    return _task(
+    """Snakeboard reach: from rest at the origin to ``goal = (x, y, theta)`` (m, m, rad) with the
+    board at rest (speed ``s = 0``), minimising the effort; per-step torques (N m) initialised from
+    a gait, ``|f| <= max_torque``, ``|phi| <= max_steer``."""
+    sb = system if system is not None else Snakeboard()
+    return make_task(
         "reach",
         sb,
-        z,
-        z,
+        np.zeros(5),
+        np.zeros(5),
         t_final,
         n_steps,
         SampledControls(t_final, n_steps, list(max_torque)),
         integrator,
+        objective=(Effort(jnp.asarray(max_torque, float)),),
+        objective_weight=1e-5,
         goal=list(goal),
-        w_heading=10.0,
-        w_position=10.0,
-        w_stop=10.0,
-        w_effort=1e-5,
-        w_bound=100.0,
+        rest=(2,),
+        penalty=Penalty(heading=10.0, position=10.0, rest=10.0, bounds=100.0),
         q_lower=[-_INF, -_INF, -_INF, -_INF, -max_steer],
         q_upper=[_INF, _INF, _INF, _INF, max_steer],
         c_max=list(max_torque),
         guess=SinusoidGait(list(max_torque), n_terms=1, frequency=frequency),
+        init_amplitude=0.9,
         checkpoint=checkpoint,
     )
 
@@ -351,14 +406,15 @@ TASKS = {
 }
 
 
-def replay(task: Task, params, *, rtol: float = 1e-10, atol: float = 1e-10) -> dict:
+def replay(task: Task, params, *, rtol: float = 1e-11, atol: float = 1e-11) -> dict:
     """Replay the optimized controls on the high-accuracy reference (:func:`ldap_jax.reference`).
 
     Returns a dict with the reference configurations ``q_ref`` at the step times, the model's
-    ``q_model``, and the terminal errors: against the goal (``final_position_error`` [m],
-    ``final_heading_error`` [rad]) when the task has one, else the model error at ``t_N``
-    (reference vs the optimizer's own rollout); ``model_position_error`` always; and
-    ``forward_displacement`` of the reference.
+    ``q_model``, the terminal errors against the goal when the task has one (else the model error
+    at ``t_N``: ``final_position_error`` [m], ``final_heading_error`` [rad]), the model errors,
+    the terminal speed of the reference (``final_speed_ref``, the norm of ``(xdot, ydot,
+    thetadot)``), the largest bound violation at the nodes on the reference (``max_bound_violation``),
+    every term (``terms_reference``) and the ``forward_displacement`` of the reference.
     """
     traj = task.rollout(params)
     ref = reference(task.system, task.q0, task.qdot0, task.controls(params), traj.t, rtol=rtol, atol=atol)
@@ -372,8 +428,16 @@ def replay(task: Task, params, *, rtol: float = 1e-10, atol: float = 1e-10) -> d
         e = np.asarray(pose_error(q_ref[-1], goal))
     else:
         pos, head, e = model_pos, model_head, None
+    c = np.asarray(jax.vmap(task.controls(params))(traj.t))
+    lo, hi = np.asarray(task.q_lower), np.asarray(task.q_upper)
+    viol_q = np.max(np.maximum(q_ref - hi, 0.0) + np.maximum(lo - q_ref, 0.0))
+    viol_c = np.max(np.maximum(c - np.asarray(task.c_upper), 0.0) + np.maximum(np.asarray(task.c_lower) - c, 0.0))
     th0 = float(task.q0[2])
     forward = float((q_ref[-1, 0] - task.q0[0]) * np.cos(th0) + (q_ref[-1, 1] - task.q0[1]) * np.sin(th0))
+    terms_ref = task.terms(Trajectory(
+        t=traj.t, q=ref.q, qdot=ref.qdot, energy=None, work=None, momentum=None, constraint_residual=None,
+        step_residual=None, converged=traj.converged, result=traj.result, failure_index=traj.failure_index,
+    ), params)
     return {
         "q_ref": q_ref,
         "q_model": q_mod,
@@ -384,8 +448,10 @@ def replay(task: Task, params, *, rtol: float = 1e-10, atol: float = 1e-10) -> d
         "model_heading_error": model_head,
         "pose_error_log": None if e is None else e.tolist(),
         "final_speed_ref": float(np.linalg.norm(np.asarray(ref.qdot)[-1, :3])),
+        "max_bound_violation": float(max(viol_q, viol_c)),
+        "terms_reference": {k: float(v) for k, v in terms_ref.items()},
         "forward_displacement": forward,
-        "reference_result": int(ref.result),
+        "reference_result": int(ref.result._value),
     }
 
 

@@ -1,7 +1,9 @@
-"""Integrators: each a pure ``init``/``step`` pair over a system description."""
+"""Integrators: each a pure ``init`` / ``step`` / ``observe`` over a system description."""
 
+from ._base import AbstractAlphaIntegrator as AbstractAlphaIntegrator
 from ._base import AbstractIntegrator as AbstractIntegrator
 from ._base import StepInfo as StepInfo
+from ._composition import SCHEMES as SCHEMES
 from ._dla import DLA as DLA
 from ._dla import DLAState as DLAState
 from ._gni import GNI as GNI

@@ -7,7 +7,6 @@ velocities of kinematic shape coordinates, and the kinetic-metric projection ont
 
 from __future__ import annotations
 
-import functools
 from typing import Literal, NamedTuple
 
 import equinox as eqx
@@ -17,7 +16,9 @@ import numpy as np
 from jaxtyping import Array
 
 from .._linalg import solve
-from ._base import AbstractAlphaIntegrator, StepInfo
+from .._newton import newton
+from ..systems._base import body_velocity
+from ._base import AbstractAlphaIntegrator, StepInfo, classify, finite
 
 __all__ = ["DLA", "DLAState"]
 
@@ -53,48 +54,23 @@ def mass_matrix(system, q: Array, qdot: Array) -> Array:
     return jax.hessian(system.lagrangian, argnums=1)(q, qdot)
 
 
-def project(system, q: Array, w: Array, u_kin: Array) -> Array:
-    """Kinetic-metric projection of ``w`` onto ``{W(q) qdot = b}``:
-    ``argmin 1/2 (x - w)^T M (x - w)`` subject to the constraints (one KKT solve).
+def legendre_inverse(system, q: Array, p: Array, u_kin: Array) -> Array:
+    """The velocity on the constraints ``{W(q) qdot = b}`` whose momentum is ``p`` up to a
+    constraint reaction: ``dL/dqdot(q, qdot) = p + W(q)^T lambda``, ``W(q) qdot = b``.
 
-    The KKT matrix ``[[M, W^T], [W, 0]]`` is nonsingular even where ``M`` is singular in the
-    kinematic directions, because those are fixed by rows of ``W``.
+    How DLA and GNI report node velocities from their carried discrete momenta (the kinetic-metric
+    projection removes the reaction the constraints absorb). One Newton step from rest: exact
+    for ``L`` quadratic in the velocities.
     """
     rows, rhs = constraint_rows(system, q, u_kin)
-    mass = mass_matrix(system, q, w)
-    m = rows.shape[0]
-    kkt = jnp.block([[mass, rows.T], [rows, jnp.zeros((m, m), q.dtype)]])
-    sol = solve(kkt, jnp.concatenate([mass @ w, rhs]))
-    return sol[: w.shape[0]]
+    d, m = q.shape[0], rows.shape[0]
 
+    def residual(z):
+        v, lam = z[:d], z[d:]
+        return jnp.concatenate([jax.grad(system.lagrangian, argnums=1)(q, v) - rows.T @ lam - p, rows @ v - rhs])
 
-def _newton(f, z0, *, budget: int, tol):
-    """Newton's method on ``f(z) = 0`` from ``z0``: at most ``budget`` iterations, stopping once
-    ``|f(z)| <= tol``; an iterate that turns non-finite is rejected (the loop then stalls and
-    reports non-convergence). Returns ``(z, (|f(z)|, iterations))``."""
-
-    def cond(carry):
-        _, res, it = carry
-        return (it < budget) & (jnp.linalg.norm(res) > tol)
-
-    def body(carry):
-        z, res, it = carry
-        z_new = z - solve(jax.jacfwd(f)(z), res)
-        ok = jnp.all(jnp.isfinite(z_new))
-        z_new = jnp.where(ok, z_new, z)
-        res_new = jnp.where(ok, f(z_new), res)
-        # a rejected step cannot be retried: mark the budget as spent
-        return z_new, res_new, jnp.where(ok, it + 1, budget)
-
-    res0 = f(z0)
-    z, res, it = jax.lax.while_loop(cond, body, (z0, res0, jnp.zeros((), jnp.int32)))
-    # aux as floats: custom_root differentiates through its outputs (an int would need float0)
-    return z, (jnp.linalg.norm(res), it.astype(z.dtype))
-
-
-def _tangent_solve(g, y):
-    """Linear solve with the (linear) map ``g``, for implicit differentiation of the root."""
-    return solve(jax.jacfwd(g)(y), y)
+    z0 = jnp.zeros(d + m, q.dtype)
+    return (z0 - solve(jax.jacfwd(residual)(z0), residual(z0)))[:d]
 
 
 class DLAState(NamedTuple):
@@ -180,7 +156,7 @@ class DLA(AbstractAlphaIntegrator):
         if self.rtol is not None and not self.rtol > 0:
             raise ValueError(f"DLA: 'rtol' must be positive, got {self.rtol!r}")
 
-    def init(self, system, h, q0, qdot0, c0):
+    def init(self, system, h, q0, qdot0, c):
         p0 = jax.grad(system.lagrangian, argnums=1)(q0, qdot0)
         return DLAState(q=q0, p=p0, v=qdot0)
 
@@ -219,24 +195,17 @@ class DLA(AbstractAlphaIntegrator):
 
         residual_fn = lambda z: self._residual(system, h, q, p, force, u_kin, z)  # noqa: E731
         rtol = self.rtol if self.rtol is not None else 10 * float(jnp.finfo(dtype).eps) ** 0.75
-        scale = 1.0 + jnp.linalg.norm(p) + h * jnp.linalg.norm(force)
-        tol = rtol * jax.lax.stop_gradient(scale)
-        z, (res_norm, iterations) = jax.lax.custom_root(
-            residual_fn,
-            z0,
-            functools.partial(_newton, budget=self.newton_iterations, tol=tol),
-            _tangent_solve,
-            has_aux=True,
-        )
-        converged = res_norm <= tol
-        iterations = jax.lax.stop_gradient(iterations).astype(jnp.int32)
-        res_norm = jax.lax.stop_gradient(res_norm)
+        scale = 1.0 + jnp.linalg.norm(p) + jnp.abs(h) * jnp.linalg.norm(force)
+        z, info = newton(residual_fn, z0, tol=rtol * scale, max_iterations=self.newton_iterations)
 
         v = z[:d]
         q_a = q + a * h * v
         dl_dq, dl_dv = jax.grad(system.lagrangian, argnums=(0, 1))(q_a, v)
-        p_next = dl_dv + h * a * (dl_dq + force)
-        q_next = q + h * v
-        qdot_k = project(system, q, 0.5 * (v_prev + v), uk0)
-        info = StepInfo(residual=res_norm, converged=converged, iterations=iterations)
-        return DLAState(q=q_next, p=p_next, v=v), (q, qdot_k), info
+        new = DLAState(q=q + h * v, p=dl_dv + h * a * (dl_dq + force), v=v)
+        result = classify(finite(new), system.singular(new.q, q), info.converged)
+        return new, StepInfo(result=result, residual=info.residual / scale, iterations=info.iterations)
+
+    def observe(self, system, state, c):
+        q = state.q
+        qdot = legendre_inverse(system, q, state.p, system.inputs(c)[1])
+        return system.observation(q, qdot[3:], body_velocity(q, qdot), c)

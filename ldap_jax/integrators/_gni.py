@@ -12,8 +12,9 @@ import numpy as np
 from jaxtyping import Array
 
 from .._linalg import solve
-from ._base import AbstractAlphaIntegrator, StepInfo
-from ._dla import constraint_rows, full_force, mass_matrix, project
+from ..systems._base import body_velocity
+from ._base import AbstractAlphaIntegrator, StepInfo, classify, finite
+from ._dla import constraint_rows, full_force, legendre_inverse, mass_matrix
 
 __all__ = ["GNI", "GNIState"]
 
@@ -24,12 +25,13 @@ class GNIState(NamedTuple):
     Attributes:
         q: configuration ``q_k``.
         v: previous discrete velocity ``v_{k-1} = (q_k - q_{k-1}) / h`` (d,).
-        f: previous interpolated shape force ``f_{k-1+a}`` (n,).
+        p: incoming momentum ``M v_{k-1} + h a F_{k-1+a}`` (d,): the previous step's share of
+            the force folded in (as for RDP and DLA), and the node velocity's source.
     """
 
     q: Array
     v: Array
-    f: Array
+    p: Array
 
 
 class GNI(AbstractAlphaIntegrator):
@@ -98,7 +100,7 @@ class GNI(AbstractAlphaIntegrator):
         if self.variant not in ("faithful", "folded"):
             raise ValueError(f"GNI: 'variant' must be 'faithful' or 'folded', got {self.variant!r}")
 
-    def init(self, system, h, q0, qdot0, c0):
+    def init(self, system, h, q0, qdot0, c):
         # The explicit form needs a configuration-independent mass matrix (true for the car and
         # the snakeboard in these coordinates); with M(q) the dropped dL/dq terms make it
         # inconsistent, so refuse (inside jit) rather than return a wrong trajectory.
@@ -111,23 +113,22 @@ class GNI(AbstractAlphaIntegrator):
             "GNI: the explicit GNI needs a mass matrix d^2L/dqdot^2 independent of q; this system's "
             "depends on q (use lj.DLA or lj.RDP)",
         )
-        return GNIState(q=q0, v=qdot0, f=jnp.zeros(system.n_shape, q0.dtype))
+        return GNIState(q=q0, v=qdot0, p=mass_matrix(system, q0, qdot0) @ qdot0)
 
     def step(self, system, h, state, c):
-        q, v_prev, f_prev = state
+        q, v_prev, p = state
         dtype = q.dtype
         a = jnp.asarray(self.alpha, dtype)
         d = system.n_config
         f0, uk0 = system.inputs(c[0])
         f1, uk1 = system.inputs(c[1])
-        f_a = (1 - a) * f0 + a * f1
-        impulse = h * full_force(system, a * f_prev + (1 - a) * f_a)  # h F_k
+        force = full_force(system, (1 - a) * f0 + a * f1)  # F_{k+a}
         u_kin = 0.5 * (uk0 + uk1)
         mass = mass_matrix(system, q, v_prev)
         rows, rhs = constraint_rows(system, q, u_kin)
         n_rows = rows.shape[0]
         zero = jnp.zeros((n_rows, n_rows), dtype)
-        mom = mass @ v_prev + impulse
+        mom = p + h * (1 - a) * force  # M v_{k-1} + h F_k
 
         if self.variant == "faithful":
             # reflection: the constraint holds on average, W(q_k) (v_k + v_{k-1}) = 2 b
@@ -148,9 +149,14 @@ class GNI(AbstractAlphaIntegrator):
         speed = jnp.linalg.norm(v)
         tiny = jnp.finfo(dtype).tiny
         violation = jnp.linalg.norm(omega @ v) / jnp.where(speed > tiny, speed, 1.0)
-        qdot_k = project(system, q, 0.5 * (v_prev + v), uk0)
-        info = StepInfo(residual=violation, converged=jnp.ones((), bool), iterations=jnp.zeros((), jnp.int32))
-        return GNIState(q=q + h * v, v=v, f=f_a), (q, qdot_k), info
+        new = GNIState(q=q + h * v, v=v, p=mass @ v + h * a * force)
+        result = classify(finite(new), system.singular(new.q, q), jnp.ones((), bool))
+        return new, StepInfo(result=result, residual=violation, iterations=jnp.zeros((), jnp.int32))
+
+    def observe(self, system, state, c):
+        q = state.q
+        qdot = legendre_inverse(system, q, state.p, system.inputs(c)[1])
+        return system.observation(q, qdot[3:], body_velocity(q, qdot), c)
 
 
 def _kin_velocity(system, v: Array, u_kin: Array) -> Array:

@@ -7,7 +7,8 @@ from typing import ClassVar, NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from ._base import AbstractIntegrator, StepInfo
+from ..systems._base import body_velocity
+from ._base import AbstractIntegrator, StepInfo, classify, finite
 
 __all__ = ["ButcherTableau", "AbstractRungeKutta", "RK2", "RK4"]
 
@@ -30,14 +31,16 @@ class AbstractRungeKutta(AbstractIntegrator):
     tableau: ClassVar[ButcherTableau]
 
     @property
-    def control_nodes(self):
+    def control_nodes(self) -> tuple[float, ...]:
         return self.tableau.c
 
-    def init(self, system, h, q0, qdot0, c0):
+    def init(self, system, h, q0, qdot0, c):
         return (q0, system.velocities_from_qdot(q0, qdot0))
 
-    def configuration(self, state):
-        return state[0]
+    def observe(self, system, state, c):
+        q, v = state
+        qdot = system.qdot_from_velocities(q, v, system.inputs(c)[1])
+        return system.observation(q, qdot[3:], body_velocity(q, qdot), c)
 
     def step(self, system, h, state, c):
         q, v = state
@@ -52,14 +55,14 @@ class AbstractRungeKutta(AbstractIntegrator):
             ks.append(system.ode((yq, yv), c[i]))
         dq = sum(bi * k[0] for bi, k in zip(tab.b, ks) if bi != 0.0)
         dv = sum(bi * k[1] for bi, k in zip(tab.b, ks) if bi != 0.0)
-        qdot_k = ks[0][0]  # c[0] = 0: the velocity at the node
-        z = jnp.zeros((), q.dtype)
-        info = StepInfo(z, jnp.ones((), bool), jnp.zeros((), jnp.int32))
-        return (q + h * dq, v + h * dv), (q, qdot_k), info
+        new = (q + h * dq, v + h * dv)
+        zero = jnp.zeros((), q.dtype)
+        result = classify(finite(new), system.singular(new[0], q), jnp.ones((), bool))
+        return new, StepInfo(result=result, residual=zero, iterations=jnp.zeros((), jnp.int32))
 
 
 class RK2(AbstractRungeKutta):
-    """Explicit midpoint rule, order 2."""
+    """Explicit midpoint rule, order 2: ``y_{k+1} = y_k + h F(t_k + h/2, y_k + h F(t_k, y_k) / 2)``."""
 
     tableau: ClassVar[ButcherTableau] = ButcherTableau(a=((), (0.5,)), b=(0.0, 1.0), c=(0.0, 0.5))
 
@@ -69,7 +72,7 @@ class RK2(AbstractRungeKutta):
 
 
 class RK4(AbstractRungeKutta):
-    """The classical fourth-order Runge-Kutta method."""
+    """The classical fourth-order Runge-Kutta method (four stages, nodes 0, 1/2, 1/2, 1)."""
 
     tableau: ClassVar[ButcherTableau] = ButcherTableau(
         a=((), (0.5,), (0.0, 0.5), (0.0, 0.0, 1.0)),

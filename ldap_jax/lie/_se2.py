@@ -1,11 +1,17 @@
 """The special Euclidean group SE(2) (paper App. A, B).
 
-Conventions follow the paper: a group element is
-``g = [[cos th, -sin th, x], [sin th, cos th, y], [0, 0, 1]]`` and a Lie-algebra vector
-``v = (v1, v2, v3) = (omega, v_x, v_y)`` is the body angular rate followed by the body-frame
-linear velocity, with hat map (App. B)
+**One convention, used everywhere in ldap_jax:**
 
-    v^ = [[0, -v1, v2], [v1, 0, v3], [0, 0, 0]].
+* a group element (a *pose*) has coordinates ``g = (x, y, theta)``, the same order as the first
+  three entries of a configuration ``q = (x, y, theta, r_1, ..., r_n)``; its matrix is
+  ``[[cos th, -sin th, x], [sin th, cos th, y], [0, 0, 1]]``;
+* a Lie-algebra vector is ``v = (v1, v2, v3) = (omega, v_x, v_y)``: the body angular rate
+  followed by the body-frame linear velocity (the paper's order, in which the connection
+  ``A(r)`` and the symmetry basis ``e(r)`` of every model are written), with hat map (App. B)
+  ``v^ = [[0, -v1, v2], [v1, 0, v3], [0, 0, 0]]``;
+* :class:`SE2` stores ``(cos theta, sin theta, x, y)``, exactly jaxlie's ``unit_complex_xy``;
+  :meth:`SE2.from_jaxlie` / :meth:`SE2.to_jaxlie` convert, and :func:`tangent_to_jaxlie` /
+  :func:`tangent_from_jaxlie` reorder tangent vectors to and from jaxlie's ``(v_x, v_y, omega)``.
 
 All maps are written for a single element; batch with :func:`jax.vmap`. Every function with a
 removable singularity at ``v1 = 0`` uses a Taylor branch behind the double-``where`` trick, so
@@ -14,7 +20,7 @@ values *and* gradients are finite there.
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -29,110 +35,130 @@ __all__ = [
     "log",
     "cay",
     "cay_inv",
+    "compose",
+    "inverse",
+    "retract",
     "dexp_inv",
     "dcay_inv",
     "dtau_inv",
-    "retract",
-    "compose",
+    "exp_translation",
+    "tangent_to_jaxlie",
+    "tangent_from_jaxlie",
 ]
 
 
-def _small(x: Array) -> tuple[Array, Array]:
-    """Mask of ``|x|`` below a dtype-keyed threshold, and a safe stand-in for ``x``."""
-    eps = jnp.finfo(jnp.result_type(x)).eps
-    small = jnp.abs(x) < eps**0.25
-    return small, jnp.where(small, jnp.ones_like(x), x)
+def small_angle(w: Array) -> tuple[Array, Array]:
+    """Mask of ``|w|`` below a dtype-keyed threshold (``eps^(1/4)``), and a safe stand-in for ``w``."""
+    eps = jnp.finfo(jnp.result_type(w)).eps
+    small = jnp.abs(w) < eps**0.25
+    return small, jnp.where(small, jnp.ones_like(w), w)
 
 
-def _sinc_terms(w: Array) -> tuple[Array, Array]:
-    """``A(w) = sin(w)/w`` and ``B(w) = (1 - cos w)/w`` with Taylor branches at ``w = 0``."""
-    small, ws = _small(w)
-    a = jnp.where(small, 1.0 - w**2 / 6.0 + w**4 / 120.0, jnp.sin(ws) / ws)
-    b = jnp.where(small, w / 2.0 - w**3 / 24.0 + w**5 / 720.0, (1.0 - jnp.cos(ws)) / ws)
-    return a, b
+def exp_translation(w: Array, v2: Array, v3: Array, sin_w: Array, cos_w: Array) -> tuple[Array, Array]:
+    """Translation part of ``exp(v)``, ``((v2 sin w - v3 (1 - cos w)) / w, (v2 (1 - cos w) + v3 sin w) / w)``.
+
+    Takes ``sin w`` and ``cos w`` from the caller (so a kernel can share them with its rotation);
+    below ``eps^(1/4)`` the ratios ``sin(w)/w`` and ``(1 - cos w)/w`` come from their Taylor series.
+    """
+    small, ws = small_angle(w)
+    a = jnp.where(small, 1.0 - w**2 / 6.0 + w**4 / 120.0, sin_w / ws)
+    b = jnp.where(small, w / 2.0 - w**3 / 24.0 + w**5 / 720.0, (1.0 - cos_w) / ws)
+    return a * v2 - b * v3, b * v2 + a * v3
 
 
 def _half_cot_half(w: Array) -> Array:
     """``(w/2) cot(w/2)``, the even function appearing in ``log`` and ``dexp^-1``."""
-    small, ws = _small(w)
-    return jnp.where(
-        small,
-        1.0 - w**2 / 12.0 - w**4 / 720.0,
-        (ws / 2.0) * jnp.cos(ws / 2.0) / jnp.sin(ws / 2.0),
-    )
+    small, ws = small_angle(w)
+    return jnp.where(small, 1.0 - w**2 / 12.0 - w**4 / 720.0, (ws / 2.0) * jnp.cos(ws / 2.0) / jnp.sin(ws / 2.0))
 
 
-def hat(v: Float[ArrayLike, 3]) -> Float[Array, "3 3"]:
+def hat(v: Float[ArrayLike, "3"]) -> Float[Array, "3 3"]:
     """The hat map ``R^3 -> se(2)`` of App. B."""
     v = jnp.asarray(v)
     z = jnp.zeros_like(v[0])
     return jnp.array([[z, -v[0], v[1]], [v[0], z, v[2]], [z, z, z]])
 
 
-def vee(xi_hat: Float[ArrayLike, "3 3"]) -> Float[Array, 3]:
+def vee(xi_hat: Float[ArrayLike, "3 3"]) -> Float[Array, "3"]:
     """Inverse of :func:`hat`: ``(v1, v2, v3) = (X[1, 0], X[0, 2], X[1, 2])``."""
     x = jnp.asarray(xi_hat)
     return jnp.stack([x[1, 0], x[0, 2], x[1, 2]])
 
 
-def ad(v: Float[ArrayLike, 3]) -> Float[Array, "3 3"]:
+def ad(v: Float[ArrayLike, "3"]) -> Float[Array, "3 3"]:
     """Matrix of ``ad_v w = [v, w]`` (App. B): ``[[0, 0, 0], [v3, 0, -v1], [-v2, v1, 0]]``."""
     v = jnp.asarray(v)
     z = jnp.zeros_like(v[0])
     return jnp.array([[z, z, z], [v[2], z, -v[0]], [-v[1], v[0], z]])
 
 
-def exp(v: Float[ArrayLike, 3]) -> Float[Array, 3]:
-    """Exponential map, returned as group coordinates ``(theta, x, y)`` (App. B).
+def exp(v: Float[ArrayLike, "3"]) -> Float[Array, "3"]:
+    """Exponential map ``exp(v^)`` as a pose ``(x, y, theta)`` (App. B).
 
-    ``exp(v^)`` rotates by ``v1`` and translates by
+    Rotates by ``v1`` and translates by
     ``((v2 sin v1 - v3 (1 - cos v1)) / v1, (v2 (1 - cos v1) + v3 sin v1) / v1)``.
     """
     v = jnp.asarray(v)
-    a, b = _sinc_terms(v[0])
-    return jnp.stack([v[0], a * v[1] - b * v[2], b * v[1] + a * v[2]])
+    _, ws = small_angle(v[0])
+    x, y = exp_translation(v[0], v[1], v[2], jnp.sin(ws), jnp.cos(ws))
+    return jnp.stack([x, y, v[0]])
 
 
-def log(g: Float[ArrayLike, 3]) -> Float[Array, 3]:
-    """Inverse of :func:`exp` for ``g = (theta, x, y)`` with ``theta`` taken in ``(-pi, pi]``.
+def log(g: Float[ArrayLike, "3"]) -> Float[Array, "3"]:
+    """Inverse of :func:`exp` for a pose ``g = (x, y, theta)``, with ``theta`` taken in ``(-pi, pi]``.
 
     ``(v2, v3) = [[c, w/2], [-w/2, c]] (x, y)`` with ``w = theta`` and ``c = (w/2) cot(w/2)``.
     """
     g = jnp.asarray(g)
-    w = jnp.arctan2(jnp.sin(g[0]), jnp.cos(g[0]))
+    w = jnp.arctan2(jnp.sin(g[2]), jnp.cos(g[2]))
     c = _half_cot_half(w)
-    return jnp.stack([w, c * g[1] + 0.5 * w * g[2], -0.5 * w * g[1] + c * g[2]])
+    return jnp.stack([w, c * g[0] + 0.5 * w * g[1], -0.5 * w * g[0] + c * g[1]])
 
 
-def cay(v: Float[ArrayLike, 3]) -> Float[Array, 3]:
-    """Cayley map ``(I - v^/2)^-1 (I + v^/2)`` as group coordinates ``(theta, x, y)``.
+def cay(v: Float[ArrayLike, "3"]) -> Float[Array, "3"]:
+    """Cayley map ``(I - v^/2)^-1 (I + v^/2)`` as a pose ``(x, y, theta)``.
 
     Corrected App. B: rotation block ``[[4 - v1^2, -4 v1], [4 v1, 4 - v1^2]] / (4 + v1^2)``,
-    translation ``(4 v2 - 2 v1 v3, 4 v3 + 2 v1 v2) / (4 + v1^2)``; so ``theta = 2 atan(v1 / 2)``.
+    translation ``(4 v2 - 2 v1 v3, 4 v3 + 2 v1 v2) / (4 + v1^2)``, so ``theta = 2 atan(v1 / 2)``.
     """
     v = jnp.asarray(v)
     d = 4.0 + v[0] ** 2
     return jnp.stack(
-        [
-            2.0 * jnp.arctan(v[0] / 2.0),
-            (4.0 * v[1] - 2.0 * v[0] * v[2]) / d,
-            (4.0 * v[2] + 2.0 * v[0] * v[1]) / d,
-        ]
+        [(4.0 * v[1] - 2.0 * v[0] * v[2]) / d, (4.0 * v[2] + 2.0 * v[0] * v[1]) / d, 2.0 * jnp.arctan(v[0] / 2.0)]
     )
 
 
-def cay_inv(g: Float[ArrayLike, 3]) -> Float[Array, 3]:
+def cay_inv(g: Float[ArrayLike, "3"]) -> Float[Array, "3"]:
     """Inverse Cayley map: ``v1 = 2 tan(theta/2)``, ``(v2, v3) = (x + v1 y / 2, y - v1 x / 2)``."""
     g = jnp.asarray(g)
-    w = 2.0 * jnp.tan(g[0] / 2.0)
-    return jnp.stack([w, g[1] + 0.5 * w * g[2], g[2] - 0.5 * w * g[1]])
+    w = 2.0 * jnp.tan(g[2] / 2.0)
+    return jnp.stack([w, g[0] + 0.5 * w * g[1], g[1] - 0.5 * w * g[0]])
 
 
-def dexp_inv(v: Float[ArrayLike, 3]) -> Float[Array, "3 3"]:
+def compose(g1: Float[ArrayLike, "3"], g2: Float[ArrayLike, "3"]) -> Float[Array, "3"]:
+    """``g1 g2`` for poses ``(x, y, theta)`` (angles add, no wrapping)."""
+    g1, g2 = jnp.asarray(g1), jnp.asarray(g2)
+    c, s = jnp.cos(g1[2]), jnp.sin(g1[2])
+    return jnp.stack([g1[0] + c * g2[0] - s * g2[1], g1[1] + s * g2[0] + c * g2[1], g1[2] + g2[2]])
+
+
+def inverse(g: Float[ArrayLike, "3"]) -> Float[Array, "3"]:
+    """``g^-1`` for a pose ``(x, y, theta)``."""
+    g = jnp.asarray(g)
+    c, s = jnp.cos(g[2]), jnp.sin(g[2])
+    return jnp.stack([-(c * g[0] + s * g[1]), s * g[0] - c * g[1], -g[2]])
+
+
+def retract(v: Float[ArrayLike, "3"], retraction: str) -> Float[Array, "3"]:
+    """``tau(v)`` as a pose, ``tau in {exp, cay}`` (``retraction`` is ``"exp"`` or ``"cayley"``)."""
+    return exp(v) if retraction == "exp" else cay(v)
+
+
+def dexp_inv(v: Float[ArrayLike, "3"]) -> Float[Array, "3 3"]:
     """Exact right-trivialized inverse differential of ``exp`` (eq. (28), all terms).
 
     ``dexp^-1_v = sum_j B_j / j! ad_v^j`` (Bernoulli numbers). On SE(2), with
-    ``c = (v1/2) cot(v1/2)``, ``beta = (1 - c) / v1``, ``J = [[0, -1], [1, 0]]`` and ``b = (v3, -v2)``:
+    ``c = (v1/2) cot(v1/2)``, ``beta = (1 - c) / v1``, ``J = [[0, -1], [1, 0]]`` and ``b = (v3, -v2)``::
 
         dexp^-1_v = [[1, 0], [(-I/2 + beta J) b, c I - (v1/2) J]],
 
@@ -141,21 +167,16 @@ def dexp_inv(v: Float[ArrayLike, 3]) -> Float[Array, "3 3"]:
     v = jnp.asarray(v)
     w = v[0]
     c = _half_cot_half(w)
-    small, ws = _small(w)
+    small, ws = small_angle(w)
     beta = jnp.where(small, w / 12.0 + w**3 / 720.0, (1.0 - c) / ws)
     b1, b2 = v[2], -v[1]
-    z = jnp.zeros_like(w)
-    one = jnp.ones_like(w)
+    z, one = jnp.zeros_like(w), jnp.ones_like(w)
     return jnp.array(
-        [
-            [one, z, z],
-            [-0.5 * b1 - beta * b2, c, 0.5 * w],
-            [-0.5 * b2 + beta * b1, -0.5 * w, c],
-        ]
+        [[one, z, z], [-0.5 * b1 - beta * b2, c, 0.5 * w], [-0.5 * b2 + beta * b1, -0.5 * w, c]]
     )
 
 
-def dcay_inv(v: Float[ArrayLike, 3]) -> Float[Array, "3 3"]:
+def dcay_inv(v: Float[ArrayLike, "3"]) -> Float[Array, "3 3"]:
     """Right-trivialized inverse differential of the Cayley map, eq. (32) (exact).
 
     ``dcay^-1_v = I - ad_v / 2 + [v1 v, 0_{3x2}] / 4``, i.e. ``w -> (I - v^/2) w^ (I + v^/2)`` (29).
@@ -165,7 +186,11 @@ def dcay_inv(v: Float[ArrayLike, 3]) -> Float[Array, "3 3"]:
     return jnp.eye(3, dtype=v.dtype) - 0.5 * ad(v) + extra
 
 
-def dtau_inv(v: Float[ArrayLike, 3], retraction: str, order: int | None = None) -> Array:
+#: Bernoulli coefficients ``B_j / j!`` of the ``dexp^-1`` series (the odd ones beyond j = 1 vanish).
+_BERNOULLI = {2: 1.0 / 12.0, 4: -1.0 / 720.0, 6: 1.0 / 30240.0, 8: -1.0 / 1209600.0}
+
+
+def dtau_inv(v: Float[ArrayLike, "3"], retraction: str, order: int | None = None) -> Float[Array, "3 3"]:
     """``dtau^-1_v`` for ``retraction in {"exp", "cayley"}``.
 
     Args:
@@ -174,52 +199,55 @@ def dtau_inv(v: Float[ArrayLike, 3], retraction: str, order: int | None = None) 
         order: ``None`` for the exact map; an integer ``p`` truncates the series in ``ad_v``
             after the ``ad_v^p`` term: ``p = 1`` gives ``I - ad_v/2`` (what the paper's explicit
             car and snakeboard steps use), ``p = 2`` gives eq. (31) for exp and (32) for Cayley.
+
+    Raises:
+        ValueError: if ``order`` is not ``None`` or a positive integer.
     """
     v = jnp.asarray(v)
     if order is None:
         return dexp_inv(v) if retraction == "exp" else dcay_inv(v)
     if order < 1:
-        raise ValueError(f"order must be None or >= 1, got {order}")
-    eye = jnp.eye(3, dtype=v.dtype)
+        raise ValueError(f"dtau_inv: 'order' must be None or >= 1, got {order}")
     a = ad(v)
-    out = eye - 0.5 * a
+    out = jnp.eye(3, dtype=v.dtype) - 0.5 * a
     if order >= 2:
         if retraction == "exp":
-            # Bernoulli series: B_2/2! = 1/12, B_odd>1 = 0, B_4/4! = -1/720, B_6/6! = 1/30240, ...
-            coeffs = {2: 1.0 / 12.0, 4: -1.0 / 720.0, 6: 1.0 / 30240.0, 8: -1.0 / 1209600.0}
             power = a
             for j in range(2, order + 1):
                 power = power @ a
-                out = out + coeffs.get(j, 0.0) * power
+                out = out + _BERNOULLI.get(j, 0.0) * power
         else:
             out = dcay_inv(v)
     return out
 
 
-def retract(v: Float[ArrayLike, 3], retraction: str) -> Float[Array, 3]:
-    """``tau(v)`` as group coordinates, ``tau in {exp, cay}``."""
-    return exp(v) if retraction == "exp" else cay(v)
+def tangent_to_jaxlie(v: Float[ArrayLike, "3"]) -> Float[Array, "3"]:
+    """``(omega, v_x, v_y)`` (ours, the paper's) -> ``(v_x, v_y, omega)`` (jaxlie's)."""
+    v = jnp.asarray(v)
+    return jnp.stack([v[1], v[2], v[0]])
 
 
-def compose(g1: Array, g2: Array) -> Array:
-    """``g1 g2`` in coordinates ``(theta, x, y)`` (angles add, no wrapping)."""
-    c, s = jnp.cos(g1[0]), jnp.sin(g1[0])
-    return jnp.stack([g1[0] + g2[0], g1[1] + c * g2[1] - s * g2[2], g1[2] + s * g2[1] + c * g2[2]])
+def tangent_from_jaxlie(t: Float[ArrayLike, "3"]) -> Float[Array, "3"]:
+    """``(v_x, v_y, omega)`` (jaxlie's) -> ``(omega, v_x, v_y)`` (ours, the paper's)."""
+    t = jnp.asarray(t)
+    return jnp.stack([t[2], t[0], t[1]])
 
 
 class SE2(eqx.Module):
-    """An element of SE(2), stored as ``(cos theta, sin theta, x, y)`` (as in jaxlie).
+    """An element of SE(2), stored as ``(cos theta, sin theta, x, y)`` (jaxlie's layout).
 
     The vocabulary follows jaxlie: :meth:`identity`, :meth:`exp`, :meth:`log`, ``@``,
     :meth:`inverse`, :meth:`adjoint`, :meth:`as_matrix`; plus :meth:`cay` and :meth:`cay_inv`.
-    Tangent vectors use the paper's order ``(omega, v_x, v_y)``.
+    Tangent vectors use the paper's order ``(omega, v_x, v_y)``; :meth:`from_jaxlie` and
+    :meth:`to_jaxlie` convert elements (the storage is the same), :func:`tangent_to_jaxlie` the
+    tangent order.
 
     Example:
         >>> g = SE2.exp(jnp.array([0.3, 1.0, 0.0]))
         >>> (g @ g.inverse()).log()   # ~ zeros
     """
 
-    unit_complex_xy: Float[Array, 4]
+    unit_complex_xy: Float[Array, "4"]
 
     tangent_dim: ClassVar[int] = 3
     parameters_dim: ClassVar[int] = 4
@@ -227,17 +255,33 @@ class SE2(eqx.Module):
 
     @staticmethod
     def from_xy_theta(x: ArrayLike, y: ArrayLike, theta: ArrayLike) -> SE2:
+        """From a pose ``(x, y, theta)``."""
         x, y, theta = jnp.asarray(x), jnp.asarray(y), jnp.asarray(theta)
         return SE2(jnp.stack([jnp.cos(theta), jnp.sin(theta), x, y]))
 
+    def as_xy_theta(self) -> Float[Array, "3"]:
+        """The pose ``(x, y, theta)`` with ``theta`` in ``(-pi, pi]``."""
+        return jnp.concatenate([self.translation, self.theta[None]])
+
     @staticmethod
-    def identity(dtype=None) -> SE2:
+    def identity(dtype: Any = None) -> SE2:
         return SE2(jnp.array([1.0, 0.0, 0.0, 0.0], dtype=dtype))
 
     @staticmethod
     def from_matrix(matrix: ArrayLike) -> SE2:
         m = jnp.asarray(matrix)
         return SE2(jnp.stack([m[0, 0], m[1, 0], m[0, 2], m[1, 2]]))
+
+    @staticmethod
+    def from_jaxlie(g: Any) -> SE2:
+        """From a ``jaxlie.SE2`` (same storage, ``unit_complex_xy``)."""
+        return SE2(jnp.asarray(g.unit_complex_xy))
+
+    def to_jaxlie(self) -> Any:
+        """As a ``jaxlie.SE2`` (requires jaxlie)."""
+        import jaxlie
+
+        return jaxlie.SE2(self.unit_complex_xy)
 
     @property
     def theta(self) -> Array:
@@ -254,21 +298,22 @@ class SE2(eqx.Module):
 
     @staticmethod
     def exp(v: ArrayLike) -> SE2:
-        th, x, y = exp(v)
-        return SE2(jnp.stack([jnp.cos(th), jnp.sin(th), x, y]))
+        """``exp(v^)`` for ``v = (omega, v_x, v_y)``."""
+        return SE2.from_xy_theta(*exp(v))
 
     @staticmethod
     def cay(v: ArrayLike) -> SE2:
+        """``cay(v^)``, with the rotation in rational form (no trigonometric function)."""
         v = jnp.asarray(v)
         d = 4.0 + v[0] ** 2
-        _, x, y = cay(v)
+        x, y, _ = cay(v)
         return SE2(jnp.stack([(4.0 - v[0] ** 2) / d, 4.0 * v[0] / d, x, y]))
 
-    def log(self) -> Array:
-        return log(jnp.concatenate([self.theta[None], self.translation]))
+    def log(self) -> Float[Array, "3"]:
+        return log(self.as_xy_theta())
 
-    def cay_inv(self) -> Array:
-        return cay_inv(jnp.concatenate([self.theta[None], self.translation]))
+    def cay_inv(self) -> Float[Array, "3"]:
+        return cay_inv(self.as_xy_theta())
 
     def multiply(self, other: SE2) -> SE2:
         c1, s1, x1, y1 = self.unit_complex_xy
@@ -290,7 +335,7 @@ class SE2(eqx.Module):
         z, o = jnp.zeros_like(c), jnp.ones_like(c)
         return jnp.array([[o, z, z], [y, c, -s], [-x, s, c]])
 
-    def apply(self, p: ArrayLike) -> Array:
+    def apply(self, p: ArrayLike) -> Float[Array, "2"]:
         """Act on a point of the plane."""
         c, s, x, y = self.unit_complex_xy
         p = jnp.asarray(p)

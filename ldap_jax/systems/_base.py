@@ -1,21 +1,25 @@
-"""The system description shared by every integrator (DESIGN.md section 1).
+"""The system description shared by every integrator (see ``docs/mathematics.md``, section 1).
 
-A system lives on ``Q = M x SE(2)`` with coordinates ``q = (x, y, theta, r_1, ..., r_n)``.
-It is described once, in two views that must agree:
+A system lives on ``Q = M x SE(2)`` with coordinates ``q = (x, y, theta, r_1, ..., r_n)``
+(positions in metres, angles in radians). It is described once, in two views that must agree:
 
 * the *reduced view* read by RDP: reduced Lagrangian ``l(r, u, xi)``, nonholonomic connection
   ``A(r)`` (3 x n), constrained-symmetry basis ``e(r)`` (3 x c), and shape forces;
-* the *full view* read by RK, the diffrax reference and the checks: the Lagrangian
-  ``L(q, qdot) = l(r, rdot, g^-1 gdot)`` and the constraint one-forms ``omega(q) qdot = 0``.
+* the *full view* read by RK, DLA, GNI, the diffrax reference and the checks: the Lagrangian
+  ``L(q, qdot) = l(r, rdot, g^-1 gdot)`` and the constraint one-forms ``omega(q) qdot = 0``,
+  derived from the constraints in the body frame ``C(r) [xi; rdot] = 0`` (they do not depend on
+  the pose: the constraints are SE(2)-invariant).
 
 Shape coordinates are either force-driven or *kinematic*: the velocity of a kinematic shape
 coordinate is prescribed by a control channel (the car's steering rate ``sigma_dot = u_sigma``).
+Lie-algebra vectors are ``xi = (omega, v_x, v_y)`` (body angular rate, body-frame velocity).
 """
 
 from __future__ import annotations
 
 import abc
-from typing import ClassVar
+import dataclasses
+from typing import ClassVar, NamedTuple
 
 import equinox as eqx
 import jax
@@ -25,56 +29,106 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._linalg import solve
 
-__all__ = ["AbstractSystem", "body_velocity", "positive_parameter"]
+__all__ = ["AbstractSystem", "Observation", "body_velocity", "spatial_velocity", "physical_parameter"]
 
 
-def positive_parameter(x: ArrayLike) -> Array:
-    """Converter for physical parameters: a floating array (default float dtype for ints)."""
-    x = jnp.asarray(x)
+def physical_parameter(x: ArrayLike) -> Array:
+    """Converter for physical parameters: a floating array (the default float dtype for ints).
+
+    Raises:
+        TypeError: for anything that is not a number or an array of numbers (e.g. a string).
+    """
+    if isinstance(x, (str, bytes)) or (isinstance(x, np.ndarray) and x.dtype.kind in "USO"):
+        raise TypeError(f"a physical parameter must be a number or an array of numbers, got {x!r}")
+    try:
+        x = jnp.asarray(x)
+    except TypeError as err:
+        raise TypeError(f"a physical parameter must be a number or an array of numbers, got {x!r}") from err
+    if not (jnp.issubdtype(x.dtype, jnp.floating) or jnp.issubdtype(x.dtype, jnp.integer)):
+        raise TypeError(f"a physical parameter must be real, got dtype {x.dtype}")
     if not jnp.issubdtype(x.dtype, jnp.floating):
         x = x.astype(jnp.result_type(float))
     return x
 
 
-def _concrete(x) -> bool:
+def concrete(x) -> bool:
+    """True when ``x`` holds a value now (not a tracer of ``jit``, ``vmap`` or ``grad``)."""
     return not isinstance(x, jax.core.Tracer)
 
 
-def check_positive(obj, *names: str) -> None:
-    """Raise ``ValueError`` naming the parameter when a concrete parameter is not positive."""
-    for name in names:
-        value = getattr(obj, name)
-        if _concrete(value) and not bool(np.all(np.asarray(value) > 0)):
-            raise ValueError(f"{type(obj).__name__}: parameter {name!r} must be positive, got {value}")
+def positive_checks(obj, *names: str) -> tuple[tuple[str, Array], ...]:
+    """``(message, condition)`` pairs: each named parameter positive and finite."""
+    return tuple(
+        (f"parameter {name!r} must be positive and finite", jnp.isfinite(getattr(obj, name)) & (getattr(obj, name) > 0))
+        for name in names
+    )
 
 
-def body_velocity(q: Float[Array, " d"], qdot: Float[Array, " d"]) -> Float[Array, 3]:
+def body_velocity(q: Float[Array, " d"], qdot: Float[Array, " d"]) -> Float[Array, "3"]:
     """``xi = g^-1 gdot = (thetadot, c xdot + s ydot, -s xdot + c ydot)`` for ``q = (x, y, theta, r)``."""
     c, s = jnp.cos(q[2]), jnp.sin(q[2])
     return jnp.stack([qdot[2], c * qdot[0] + s * qdot[1], -s * qdot[0] + c * qdot[1]])
 
 
-def spatial_velocity(q: Float[Array, " d"], xi: Float[Array, 3]) -> Float[Array, 3]:
+def spatial_velocity(q: Float[Array, " d"], xi: Float[Array, "3"]) -> Float[Array, "3"]:
     """``(xdot, ydot, thetadot)`` from the body velocity ``xi = (omega, v_x, v_y)``."""
     c, s = jnp.cos(q[2]), jnp.sin(q[2])
     return jnp.stack([c * xi[1] - s * xi[2], s * xi[1] + c * xi[2], xi[0]])
+
+
+class Observation(NamedTuple):
+    """What a rollout reports at a node ``t_k``.
+
+    Attributes:
+        q: configuration ``(x, y, theta, r)`` (m, rad).
+        qdot: velocity (m/s, rad/s), on the constraints.
+        energy: ``E(q, qdot)`` (J).
+        momentum: nonholonomic momentum ``<d_xi l, e_b(r)>`` (c,).
+        constraint_residual: ``|omega(q) qdot|``.
+        power: power of the shape forces at ``t_k``, ``<f(t_k), rdot>`` (W).
+    """
+
+    q: Array
+    qdot: Array
+    energy: Array
+    momentum: Array
+    constraint_residual: Array
+    power: Array
 
 
 class AbstractSystem(eqx.Module):
     """A nonholonomic mechanical system with SE(2) symmetry.
 
     Subclasses give the reduced view (:meth:`reduced_lagrangian`, :meth:`connection`,
-    :meth:`symmetry_basis`), the constraint one-forms (:meth:`constraint_forms`), how control
-    channels enter (:meth:`inputs`), and the continuous equations of motion in a minimal set of
-    velocities ``v`` (:meth:`qdot_from_velocities`, :meth:`velocities_from_qdot`,
-    :meth:`velocity_dynamics`). Everything else (full Lagrangian, energy, momentum, the
-    Lagrange-d'Alembert accelerations used to check the equations) is derived here.
+    :meth:`symmetry_basis`), the constraints in the body frame (:meth:`body_constraints`), how
+    control channels enter (:meth:`inputs`), and the continuous equations of motion in a minimal
+    set of velocities ``v`` (:meth:`qdot_from_velocities`, :meth:`velocities_from_qdot`,
+    :meth:`velocity_dynamics`). Everything else (full Lagrangian, constraint one-forms, energy,
+    momentum, the reduced Legendre transform and its inverse, the Lagrange-d'Alembert
+    accelerations used to check the equations) is derived here.
     """
 
     shape_names: ClassVar[tuple[str, ...]]
     control_names: ClassVar[tuple[str, ...]]
     kinematic: ClassVar[tuple[bool, ...]]
     n_velocities: ClassVar[int]
+
+    def parameter_checks(self) -> tuple[tuple[str, Array], ...]:
+        """``(message, condition)`` pairs the physical parameters must satisfy (default: none).
+
+        Checked at construction when the parameters are concrete (a ``ValueError`` with the
+        message), and in every run when they are traced (e.g. a model built inside ``vmap``),
+        where a violation fails that trajectory with ``RESULTS.invalid_input``.
+        """
+        return ()
+
+    def __check_init__(self):
+        with jax.ensure_compile_time_eval():
+            checks = self.parameter_checks()
+        for message, ok in checks:
+            if concrete(ok) and not bool(np.all(np.asarray(ok))):
+                values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if eqx.is_array(getattr(self, f.name))}
+                raise ValueError(f"{type(self).__name__}: {message}, got {values}")
 
     @property
     def n_shape(self) -> int:
@@ -101,7 +155,7 @@ class AbstractSystem(eqx.Module):
     # ----------------------------------------------------------------- reduced view
     @abc.abstractmethod
     def reduced_lagrangian(self, r: Array, u: Array, xi: Array) -> Array:
-        """``l(r, u, xi) = L(r, u, e, xi)``."""
+        """``l(r, u, xi) = L(r, u, e, xi)`` (J)."""
 
     @abc.abstractmethod
     def connection(self, r: Array) -> Float[Array, "3 n"]:
@@ -116,15 +170,23 @@ class AbstractSystem(eqx.Module):
         """Split control channel values into shape forces ``f`` (n,) and prescribed shape
         velocities ``u_kin`` (n,; only the kinematic entries are read)."""
 
+    @abc.abstractmethod
+    def body_constraints(self, r: Array) -> Float[Array, "m d"]:
+        """The constraints in the body frame: ``C(r) [xi; rdot] = 0`` with ``xi = (omega, v_x, v_y)``
+        (prescribed shape velocities excluded)."""
+
     # ------------------------------------------------------------------- full view
     def lagrangian(self, q: Array, qdot: Array) -> Array:
         """``L(q, qdot) = l(r, rdot, g^-1 gdot)`` (the symmetry reduces L to l)."""
         return self.reduced_lagrangian(q[3:], qdot[3:], body_velocity(q, qdot))
 
-    @abc.abstractmethod
     def constraint_forms(self, q: Array) -> Float[Array, "m d"]:
-        """Constraint one-forms ``omega(q)`` with ``omega(q) qdot = 0`` (prescribed shape
-        velocities excluded)."""
+        """Constraint one-forms ``omega(q) = C(r) diag(B(theta), I)``, with ``xi = B(theta)(xdot, ydot, thetadot)``."""
+        c, s = jnp.cos(q[2]), jnp.sin(q[2])
+        z, o = jnp.zeros_like(c), jnp.ones_like(c)
+        b = jnp.array([[z, z, o], [c, s, z], [-s, c, z]])
+        cmat = self.body_constraints(q[3:])
+        return jnp.concatenate([cmat[:, :3] @ b, cmat[:, 3:]], axis=1)
 
     # ----------------------------------------------- continuous equations, minimal form
     @abc.abstractmethod
@@ -154,26 +216,104 @@ class AbstractSystem(eqx.Module):
             out = out | (s * self.singularity(q_prev) < 0)
         return out
 
+    # ------------------------------------------------------- reduced Legendre transform
+    def reduced_energy(self, r: Array, u: Array, xi: Array) -> Array:
+        """Energy ``E = <d_u l, u> + <d_xi l, xi> - l`` (J) at shape ``r`` and velocities ``(u, xi)``."""
+        lag, (du, dxi) = jax.value_and_grad(self.reduced_lagrangian, argnums=(1, 2))(r, u, xi)
+        return jnp.dot(du, u) + jnp.dot(dxi, xi) - lag
+
+    def reduced_momentum(self, r: Array, u: Array, xi: Array) -> Float[Array, " c"]:
+        """Nonholonomic momentum ``mu_b = <d_xi l, e_b(r)>`` (paper (7))."""
+        return self.symmetry_basis(r).T @ jax.grad(self.reduced_lagrangian, argnums=2)(r, u, xi)
+
+    def velocity_from_momenta(
+        self, r: Array, pu: Array, mu: Array, u_kin: Array
+    ) -> tuple[Float[Array, " n"], Float[Array, "3"]]:
+        """Invert the reduced Legendre transform on the constraint distribution.
+
+        Finds ``(u, xi)``, ``xi = e(r) w - A(r) u`` and ``u`` equal to ``u_kin`` in its kinematic
+        entries, such that (the RDP equations (21), (23) at ``h = 0``)::
+
+            d_u l - A(r)^T d_xi l = pu - A(r)^T mu      (force-driven rows),
+            e(r)^T d_xi l         = e(r)^T mu,
+
+        i.e. the velocity whose momenta are ``(pu, mu)`` modulo what the constraints absorb. This
+        is how every RDP order reports node velocities: from its carried momenta, not by
+        differencing positions. One Newton step from rest: exact for ``l`` quadratic in the
+        velocities (every mechanical system, with or without a potential).
+
+        Returns:
+            ``(u (n,), xi (3,))``.
+        """
+        dyn = np.asarray(self.dynamic_index, dtype=int)
+        nd = dyn.size
+        a_r, e_r = self.connection(r), self.symmetry_basis(r)
+
+        def unpack(z):
+            u = u_kin.at[dyn].set(z[:nd]) if nd else u_kin
+            return u, e_r @ z[nd:] - a_r @ u
+
+        def residual(z):
+            u, xi = unpack(z)
+            du, dxi = jax.grad(self.reduced_lagrangian, argnums=(1, 2))(r, u, xi)
+            jump = dxi - mu
+            hor = du - a_r.T @ jump - pu
+            return jnp.concatenate([hor[dyn], e_r.T @ jump])
+
+        z0 = jnp.zeros(nd + e_r.shape[1], r.dtype)
+        z = z0 - solve(jax.jacfwd(residual)(z0), residual(z0))
+        return unpack(z)
+
+    def observation(
+        self,
+        q: Array,
+        u: Array,
+        xi: Array,
+        controls: Array,
+        *,
+        rotation: tuple[Array, Array] | None = None,
+        momentum: Array | None = None,
+    ) -> Observation:
+        """The :class:`Observation` at a node with configuration ``q``, shape velocity ``u`` and
+        body velocity ``xi``; ``controls`` are the channel values at the node's time.
+
+        ``rotation`` (``(cos theta, sin theta)``) and ``momentum`` may be passed when the caller
+        already holds them (the closed-form kernels do); they are computed otherwise.
+        """
+        r = q[3:]
+        c, s = rotation if rotation is not None else (jnp.cos(q[2]), jnp.sin(q[2]))
+        xyt = jnp.stack([c * xi[1] - s * xi[2], s * xi[1] + c * xi[2], xi[0]])
+        f, _ = self.inputs(controls)
+        return Observation(
+            q=q,
+            qdot=jnp.concatenate([xyt, u]),
+            energy=self.reduced_energy(r, u, xi),
+            momentum=self.reduced_momentum(r, u, xi) if momentum is None else momentum,
+            constraint_residual=self.body_constraint_residual(r, u, xi),
+            power=self.power(f, u),
+        )
+
     # ----------------------------------------------------------------- derived
     def energy(self, q: Array, qdot: Array) -> Array:
-        """Energy ``E = <dL/dqdot, qdot> - L``."""
-        lag, p = jax.value_and_grad(self.lagrangian, argnums=1)(q, qdot)
-        return jnp.dot(p, qdot) - lag
+        """Energy ``E = <dL/dqdot, qdot> - L`` (J)."""
+        return self.reduced_energy(q[3:], qdot[3:], body_velocity(q, qdot))
 
     def momentum(self, q: Array, qdot: Array) -> Float[Array, " c"]:
         """Nonholonomic momentum ``mu_b = <dl/dxi, e_b(r)>`` (paper (7))."""
-        r, rdot, xi = q[3:], qdot[3:], body_velocity(q, qdot)
-        mu = jax.grad(self.reduced_lagrangian, argnums=2)(r, rdot, xi)
-        return self.symmetry_basis(r).T @ mu
+        return self.reduced_momentum(q[3:], qdot[3:], body_velocity(q, qdot))
+
+    def body_constraint_residual(self, r: Array, u: Array, xi: Array) -> Array:
+        """``|C(r) [xi; u]|``: the constraint violation of the velocity ``(u, xi)``."""
+        return jnp.linalg.norm(self.body_constraints(r) @ jnp.concatenate([xi, u]))
 
     def constraint_residual(self, q: Array, qdot: Array) -> Array:
-        """``|omega(q) qdot|`` (Euclidean norm)."""
-        return jnp.linalg.norm(self.constraint_forms(q) @ qdot)
+        """``|omega(q) qdot|`` (Euclidean norm; m/s and rad/s mixed as the constraints are written)."""
+        return self.body_constraint_residual(q[3:], qdot[3:], body_velocity(q, qdot))
 
-    def power(self, f: Array, qdot: Array) -> Array:
-        """Power of the shape forces ``<f, rdot>`` (kinematic coordinates carry no force)."""
-        idx = jnp.asarray(self.dynamic_index, dtype=int)
-        return jnp.dot(f[idx], qdot[3:][idx])
+    def power(self, f: Array, rdot: Array) -> Array:
+        """Power of the shape forces ``<f, rdot>`` (W; kinematic coordinates carry no force)."""
+        idx = np.asarray(self.dynamic_index, dtype=int)
+        return jnp.dot(f[idx], rdot[idx])
 
     def full_acceleration(self, q: Array, qdot: Array, f: Array, u_kin_dot: Array) -> tuple[Array, Array]:
         """Accelerations from the full Lagrange-d'Alembert equations, by autodiff.
@@ -193,7 +333,7 @@ class AbstractSystem(eqx.Module):
         dl_dq = jax.grad(self.lagrangian, argnums=0)(q, qdot)
         force = jnp.zeros(d, q.dtype).at[3:].set(f)
         omega = self.constraint_forms(q)
-        kin = jnp.asarray(self.kinematic_index, dtype=int)
+        kin = np.asarray(self.kinematic_index, dtype=int)
         e_kin = jnp.eye(d, dtype=q.dtype)[3 + kin] if kin.size else jnp.zeros((0, d), q.dtype)
         rows = jnp.concatenate([omega, e_kin], axis=0)
         domega_qdot = jax.jacfwd(lambda qq: self.constraint_forms(qq) @ qdot)(q) @ qdot
@@ -213,24 +353,7 @@ class AbstractSystem(eqx.Module):
     def consistent_qdot(self, q: Array, qdot: Array, controls: Array) -> Array:
         """``qdot`` with its kinematic shape entries replaced by the prescribed velocities."""
         _, u_kin = self.inputs(controls)
-        kin = jnp.asarray(self.kinematic_index, dtype=int)
+        kin = np.asarray(self.kinematic_index, dtype=int)
         if kin.size == 0:
             return qdot
         return qdot.at[3 + kin].set(u_kin[kin])
-
-    def locked_velocity(self, r: Array, rdot: Array, momentum: Array) -> Float[Array, 3]:
-        """Body velocity ``xi = E(r) w - A(r) rdot`` whose nonholonomic momentum
-        ``E(r)^T dl/dxi`` equals ``momentum`` (c,). Exact for ``l`` quadratic in ``xi``."""
-        e = self.symmetry_basis(r)
-        a_rdot = self.connection(r) @ rdot
-        if e.shape[1] == 0:
-            return -a_rdot
-
-        def proj(w):
-            return e.T @ jax.grad(self.reduced_lagrangian, argnums=2)(r, rdot, e @ w - a_rdot)
-
-        w0 = jnp.zeros(e.shape[1], r.dtype)
-        res0 = proj(w0) - momentum
-        jac = jax.jacfwd(proj)(w0)
-        w = -solve(jac, res0)
-        return e @ w - a_rdot

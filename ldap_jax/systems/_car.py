@@ -2,19 +2,32 @@
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import ClassVar, NamedTuple
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
-from ._base import AbstractSystem, check_positive, positive_parameter
+from ..lie._scalar import Pose, dtau1_transpose, pose_from_xy_theta, pose_retract
+from ._base import physical_parameter, positive_checks
+from ._closed_form import AbstractClosedFormSystem
 
-__all__ = ["Car"]
+__all__ = ["Car", "CarKernelState"]
 
 
-class Car(AbstractSystem):
+class CarKernelState(NamedTuple):
+    """The car's RDP kernel state: pose, shape, and the incoming momenta ``pu = (p_psi, 0)``,
+    ``mu = (mu_1, mu_2, mu_3)``."""
+
+    pose: Pose
+    psi: Array
+    sigma: Array
+    pu: tuple[Array, Array]
+    mu: tuple[Array, Array, Array]
+
+
+class Car(AbstractClosedFormSystem):
     r"""Car with rear-wheel drive and kinematic steering on ``Q = R x R x SE(2)``.
 
     Coordinates ``q = (x, y, theta, psi, sigma)``: rear-wheel rolling angle ``psi`` and
@@ -34,19 +47,19 @@ class Car(AbstractSystem):
         l: distance between the axles. All positive.
     """
 
-    m: Array = eqx.field(converter=positive_parameter)
-    I: Array = eqx.field(converter=positive_parameter)  # noqa: E741
-    K: Array = eqx.field(converter=positive_parameter)
-    rho: Array = eqx.field(converter=positive_parameter)
-    l: Array = eqx.field(converter=positive_parameter)  # noqa: E741
+    m: Array = eqx.field(converter=physical_parameter, default=1.0)
+    I: Array = eqx.field(converter=physical_parameter, default=0.1)  # noqa: E741
+    K: Array = eqx.field(converter=physical_parameter, default=0.2)
+    rho: Array = eqx.field(converter=physical_parameter, default=0.1)
+    l: Array = eqx.field(converter=physical_parameter, default=0.5)  # noqa: E741
 
     shape_names: ClassVar[tuple[str, ...]] = ("psi", "sigma")
     control_names: ClassVar[tuple[str, ...]] = ("f_psi", "u_sigma")
     kinematic: ClassVar[tuple[bool, ...]] = (False, True)
     n_velocities: ClassVar[int] = 1
 
-    def __check_init__(self):
-        check_positive(self, "m", "I", "K", "rho", "l")
+    def parameter_checks(self):
+        return positive_checks(self, "m", "I", "K", "rho", "l")
 
     # reduced view
     def reduced_lagrangian(self, r, u, xi):
@@ -64,15 +77,12 @@ class Car(AbstractSystem):
         return jnp.stack([controls[0], z]), jnp.stack([z, controls[1]])
 
     # full view
-    def constraint_forms(self, q):
-        c, s = jnp.cos(q[2]), jnp.sin(q[2])
-        z, o = jnp.zeros_like(c), jnp.ones_like(c)
+    def body_constraints(self, r):
+        """``C(sigma) [xi; rdot] = 0``: ``v_x = rho psidot``, ``v_y = 0``, ``omega = (rho / l) sigma psidot``."""
+        z = jnp.zeros_like(r[1])
+        o = jnp.ones_like(z)
         return jnp.array(
-            [
-                [c, s, z, -self.rho + z, z],
-                [-s, c, z, z, z],
-                [z, z, o, -self.rho * q[4] / self.l, z],
-            ]
+            [[z, o, z, -self.rho + z, z], [z, z, o, z, z], [o, z, z, -self.rho * r[1] / self.l, z]]
         )
 
     # minimal continuous form, v = (psidot,)
@@ -126,20 +136,62 @@ class Car(AbstractSystem):
         qdot0 = self.qdot_from_velocities(q0, psidot0[None], ctl(zero) * jnp.array([0.0, 1.0], dtype))
         return q0, qdot0, ctl
 
-    # closed-form RDP step (paper Sec. 5.1), dtau^-1 truncated to I - ad/2
-    def rdp_closed_form(self, alpha, h, r, u_kin, b, m_in):
-        """Solve the car's RDP step explicitly (paper Sec. 5.1).
 
-        ``(I + rho^2 m + K rho^2 sigma_k sigma_{k+a} / l^2) u^psi_k = b_psi - (A(r_k)^T mu_in)_psi``
-        with ``b = d_u l_{k-1} + h F_k`` and ``mu_in`` the incoming momentum; then
-        ``xi_k = -A(r_{k+a}) u_k``.
-        """
-        sigma_k = r[1]
-        sigma_a = r[1] + alpha * h * u_kin[1]
-        a_k = self.connection(r)
-        rhs = b[0] - a_k[:, 0] @ m_in
-        inertia = self.I + self.m * self.rho**2 + self.K * self.rho**2 * sigma_k * sigma_a / self.l**2
-        u_psi = rhs / inertia
-        u = jnp.stack([u_psi, u_kin[1]])
-        xi = -self.connection(jnp.stack([r[0], sigma_a])) @ u
-        return u, xi
+    # ------------------------------------------------------ closed-form RDP (paper Sec. 5.1)
+    def _solve(self, b_psi, mu, sigma_k, sigma_a):
+        """The horizontal equation (23) for the wheel's rate (the car has no momentum equation)::
+
+            (I + rho^2 m + K rho^2 sigma_k sigma_a / l^2) u^psi = b_psi - (A(r_k)^T mu_in)_psi,
+
+        ``b_psi = p_psi + h (1 - alpha) f^psi_{k+alpha}``, ``-(A(r_k)^T mu)_psi = (rho sigma_k / l) mu_1
+        + rho mu_2``. At ``sigma_a = sigma_k`` and ``h = 0`` it inverts the reduced Legendre transform."""
+        rho, l = self.rho, self.l
+        rhs = b_psi + (rho * sigma_k / l) * mu[0] + rho * mu[1]
+        return rhs / (self.I + self.m * rho**2 + self.K * rho**2 * sigma_k * sigma_a / l**2)
+
+    def kernel_init(self, q, pu, mu):
+        return CarKernelState(
+            pose_from_xy_theta(q[0], q[1], q[2]), q[3], q[4], (pu[0], jnp.zeros_like(pu[0])), (mu[0], mu[1], mu[2])
+        )
+
+    def kernel_momenta(self, state):
+        g = state.pose
+        q = jnp.stack([g.x, g.y, g.theta, state.psi, state.sigma])
+        return q, jnp.stack(state.pu), jnp.stack(state.mu)
+
+    def kernel_step(self, alpha, h, retraction, state, c0, c1):
+        """One RDP step (paper Sec. 5.1): ``u^sigma`` is the trapezoidal average of the prescribed
+        steering rate, ``u^psi`` from :meth:`_solve` at ``sigma_a = sigma_k + alpha h u^sigma``,
+        ``xi = -A(r_{k+alpha}) u``; the next incoming momenta are ``pu = I u^psi + h alpha f^psi`` and
+        ``mu = (I + ad_{h xi} / 2)^T d_xi l``."""
+        a = alpha
+        m, inertia, kk, rho, l = self.m, self.I, self.K, self.rho, self.l
+        zero = jnp.zeros_like(state.psi)
+        fa = (1 - a) * c0[0] + a * c1[0]
+        b = state.pu[0] + h * (1 - a) * fa
+        u_sig = 0.5 * (c0[1] + c1[1])
+        sigma_a = state.sigma + a * h * u_sig
+        u_psi = self._solve(b, state.mu, state.sigma, sigma_a)
+        xi = (rho * sigma_a / l * u_psi, rho * u_psi, zero)
+        mu_new = (kk * xi[0], m * xi[1], m * xi[2])
+        hxi = tuple(h * x for x in xi)
+        jump = tuple(x - y for x, y in zip(dtau1_transpose(hxi, mu_new, 1.0), state.mu))
+        scale = 1.0 + jnp.abs(b) + jnp.sqrt(sum(x**2 for x in state.mu))
+        residual = jnp.abs(inertia * u_psi + (rho * state.sigma / l) * jump[0] + rho * jump[1] - b) / scale
+        new = CarKernelState(
+            pose_retract(state.pose, hxi, retraction),
+            state.psi + h * u_psi,
+            state.sigma + h * u_sig,
+            (inertia * u_psi + h * a * fa, zero),
+            dtau1_transpose(hxi, mu_new, -1.0),
+        )
+        return new, residual, jnp.zeros(jnp.shape(residual), bool)
+
+    def kernel_observe(self, state, c):
+        u_psi = self._solve(state.pu[0], state.mu, state.sigma, state.sigma)
+        u = jnp.stack([u_psi, c[1]])
+        rho = self.rho
+        xi = jnp.stack([rho * state.sigma / self.l * u_psi, rho * u_psi, jnp.zeros_like(u_psi)])
+        g = state.pose
+        q = jnp.stack([g.x, g.y, g.theta, state.psi, state.sigma])
+        return self.observation(q, u, xi, c, rotation=(g.cos, g.sin), momentum=jnp.zeros((0,), u.dtype))

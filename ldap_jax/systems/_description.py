@@ -88,11 +88,13 @@ class System(AbstractSystem):
     """
 
     n: int = eqx.field(static=True)
-    lagrangian_fn: Callable = eqx.field(static=True)
-    connection_fn: Callable = eqx.field(static=True)
-    symmetry_basis_fn: Callable | None = eqx.field(static=True)
-    constraints_fn: Callable | None = eqx.field(static=True)
-    singularity_fn: Callable | None = eqx.field(static=True)
+    # ordinary fields: a callable that is an eqx.Module holding arrays (a network, a fitted model)
+    # exposes them to jax.grad and jax.vmap like any parameter
+    lagrangian_fn: Callable
+    connection_fn: Callable
+    symmetry_basis_fn: Callable | None
+    constraints_fn: Callable | None
+    singularity_fn: Callable | None
     kinematic_mask: tuple[bool, ...] = eqx.field(static=True)
     names: tuple[str, ...] = eqx.field(static=True)
     n_symmetries: int = eqx.field(static=True)
@@ -210,21 +212,12 @@ class System(AbstractSystem):
             )
         return self._call(self.constraints_fn, r)
 
-    def constraint_forms(self, q):
-        """``omega(q) = C(r) diag(B(theta), I)`` with ``xi = B(theta) (xdot, ydot, thetadot)``."""
-        c, s = jnp.cos(q[2]), jnp.sin(q[2])
-        z, o = jnp.zeros_like(c), jnp.ones_like(c)
-        b = jnp.array([[z, z, o], [c, s, z], [-s, c, z]])
-        cmat = self.body_constraints(q[3:])
-        return jnp.concatenate([cmat[:, :3] @ b, cmat[:, 3:]], axis=1)
-
-    def constraint_residual(self, q, qdot):
-        """``|omega(q) qdot|`` from the full view, or, without one, the distance of
-        ``xi + A(r) rdot`` from ``span e(r)``."""
+    def body_constraint_residual(self, r, u, xi):
+        """``|C(r) [xi; u]|`` from the full view, or, without one, the distance of
+        ``xi + A(r) u`` from ``span e(r)``."""
         if self.constraints_fn is not None:
-            return super().constraint_residual(q, qdot)
-        r, rdot = q[3:], qdot[3:]
-        v = body_velocity(q, qdot) + self.connection(r) @ rdot
+            return super().body_constraint_residual(r, u, xi)
+        v = xi + self.connection(r) @ u
         e = self.symmetry_basis(r)
         if e.shape[1]:
             v = v - e @ solve(e.T @ e, e.T @ v)

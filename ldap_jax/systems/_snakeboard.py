@@ -2,20 +2,35 @@
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import ClassVar, NamedTuple
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array
 
-from ._base import AbstractSystem, _concrete, check_positive, positive_parameter
+from .._numerics import materialise, saved, sincos
+from ..lie._scalar import Pose, dtau1_transpose, pose_from_xy_theta, pose_retract
+from ._base import physical_parameter, positive_checks
+from ._closed_form import AbstractClosedFormSystem, Observation
 
-__all__ = ["Snakeboard"]
+__all__ = ["Snakeboard", "SnakeboardKernelState"]
 
 
-class Snakeboard(AbstractSystem):
+class SnakeboardKernelState(NamedTuple):
+    """The snakeboard's RDP kernel state: pose, shape with the steering angle's cosine and sine,
+    and the incoming momenta ``pu = (p_psi, p_phi)``, ``mu = (mu_1, mu_2, mu_3)``."""
+
+    pose: Pose
+    psi: Array
+    phi: Array
+    cos_phi: Array
+    sin_phi: Array
+    pu: tuple[Array, Array]
+    mu: tuple[Array, Array, Array]
+
+
+class Snakeboard(AbstractClosedFormSystem):
     r"""The snakeboard: a board with a momentum rotor and two coupled steered wheel sets.
 
     Coordinates ``q = (x, y, theta, psi, phi)``: rotor angle ``psi`` and wheel steering angle
@@ -49,25 +64,20 @@ class Snakeboard(AbstractSystem):
             normalised so that ``J_board + I + 2 J = m l^2``).
     """
 
-    m: Array = eqx.field(converter=positive_parameter)
-    l: Array = eqx.field(converter=positive_parameter)  # noqa: E741
-    I: Array = eqx.field(converter=positive_parameter)  # noqa: E741
-    J: Array = eqx.field(converter=positive_parameter)
+    m: Array = eqx.field(converter=physical_parameter, default=1.0)
+    l: Array = eqx.field(converter=physical_parameter, default=0.5)  # noqa: E741
+    I: Array = eqx.field(converter=physical_parameter, default=0.05)  # noqa: E741
+    J: Array = eqx.field(converter=physical_parameter, default=0.02)
 
     shape_names: ClassVar[tuple[str, ...]] = ("psi", "phi")
     control_names: ClassVar[tuple[str, ...]] = ("f_psi", "f_phi")
     kinematic: ClassVar[tuple[bool, ...]] = (False, False)
     n_velocities: ClassVar[int] = 3
 
-    def __check_init__(self):
-        check_positive(self, "m", "l", "I", "J")
-        if _concrete(self.I) and _concrete(self.m) and _concrete(self.l):
-            inertia, m, l = (np.asarray(x) for x in (self.I, self.m, self.l))
-            if not bool(np.all(inertia < m * l**2)):
-                raise ValueError(
-                    f"Snakeboard: parameter 'I' must satisfy I < m l^2 (rotor inertia below the "
-                    f"board's), got I={inertia}, m l^2={m * l**2}"
-                )
+    def parameter_checks(self):
+        return positive_checks(self, "m", "l", "I", "J") + (
+            ("parameter 'I' must satisfy I < m l^2 (the rotor's inertia below the board's)", self.I < self.m * self.l**2),
+        )
 
     # reduced view
     def reduced_lagrangian(self, r, u, xi):
@@ -102,16 +112,12 @@ class Snakeboard(AbstractSystem):
         return controls, jnp.zeros_like(controls)
 
     # full view
-    def constraint_forms(self, q):
-        th, phi = q[2], q[4]
-        z = jnp.zeros_like(th)
-        lc = self.l * jnp.cos(phi)
-        return jnp.array(
-            [
-                [-jnp.sin(th + phi), jnp.cos(th + phi), -lc, z, z],
-                [-jnp.sin(th - phi), jnp.cos(th - phi), lc, z, z],
-            ]
-        )
+    def body_constraints(self, r):
+        """``C(phi) [xi; rdot] = 0``: rows ``(-l cos phi, -sin phi, cos phi, 0, 0)`` and
+        ``(l cos phi, sin phi, cos phi, 0, 0)`` (the two wheel sets roll without slipping)."""
+        sp, cp = jnp.sin(r[1]), jnp.cos(r[1])
+        z, lc = jnp.zeros_like(cp), self.l * cp
+        return jnp.array([[-lc, -sp, cp, z, z], [lc, sp, cp, z, z]])
 
     # minimal continuous form, v = (psidot, phidot, s)
     def qdot_from_velocities(self, q, v, u_kin):
@@ -177,30 +183,95 @@ class Snakeboard(AbstractSystem):
         qdot0 = self.qdot_from_velocities(q0, v0, jnp.zeros(2, dtype))
         return q0, qdot0, ctl
 
-    # closed-form RDP step (paper Sec. 5.2 corrected), dtau^-1 truncated to I - ad/2
-    def rdp_closed_form(self, alpha, h, r, u_kin, b, m_in):
-        """Solve the snakeboard's RDP step: explicit phi row, then a 2 x 2 linear solve.
 
-        ``u^phi_k = b_phi / (2 J)``, ``phi_a = phi_k + alpha h u^phi_k``, ``xi_k = c_k e_1(phi_a)``, and::
+    # --------------------------------------------- closed-form RDP (paper Sec. 5.2, corrected)
+    def _solve(self, b_psi, nu, s_k, c_k, s_a, c_a):
+        """The rotor's horizontal row and the momentum equation (21), solved for ``(u^psi, c)``
+        with ``xi = c e_1(phi_a)``::
 
-            [[1, sin 2phi_a], [I sin 2phi_k, m l^2 kappa]] (u^psi_k, c_k)
-                = (b_psi / I, <mu_in, e_1(phi_k)>),
+            [[1, sin 2phi_a], [I sin 2phi_k, m l^2 kappa]] (u^psi, c) = (b_psi / I, nu),
             kappa = 4 cos(phi_a) cos(phi_k) cos(phi_a - phi_k),
 
-        with ``b = d_u l_{k-1} + h F_k`` (row 1 is the rotor's horizontal equation, row 2 the
-        discrete momentum equation (21)).
-        """
-        phi_k = r[1]
-        u_phi = b[1] / (2 * self.J)
-        phi_a = phi_k + alpha * h * u_phi
-        s2a, s2k = jnp.sin(2 * phi_a), jnp.sin(2 * phi_k)
-        ca, ck = jnp.cos(phi_a), jnp.cos(phi_k)
+        ``b_psi = p_psi + h (1 - alpha) f^psi_{k+alpha}``, ``nu = <mu_in, e_1(phi_k)>``; the
+        determinant ``4 cos phi_a cos phi_k (m l^2 cos(phi_a - phi_k) - I sin phi_a sin phi_k)``
+        vanishes only at ``cos phi = 0``. At ``phi_a = phi_k`` and ``h = 0`` this is the
+        reduced Legendre transform's inverse (the node velocity)."""
         ml2 = self.m * self.l**2
-        kappa = 4 * ca * ck * jnp.cos(phi_a - phi_k)
-        b1 = b[0] / self.I
-        b2 = m_in @ self.e1(phi_k)
+        s2a, s2k = 2 * s_a * c_a, 2 * s_k * c_k
+        kappa = 4 * c_a * c_k * (c_a * c_k + s_a * s_k)
+        b1 = b_psi / self.I
         det = ml2 * kappa - self.I * s2k * s2a
-        u_psi = (ml2 * kappa * b1 - s2a * b2) / det
-        c = (b2 - self.I * s2k * b1) / det
-        xi = c * self.e1(phi_a)
-        return jnp.stack([u_psi, u_phi]), xi
+        u_psi = (ml2 * kappa * b1 - s2a * nu) / det
+        c = (nu - self.I * s2k * b1) / det
+        return u_psi, c
+
+    def kernel_init(self, q, pu, mu):
+        s, c = sincos(q[4])
+        return SnakeboardKernelState(
+            pose_from_xy_theta(q[0], q[1], q[2]), q[3], q[4], c, s, (pu[0], pu[1]), (mu[0], mu[1], mu[2])
+        )
+
+    def kernel_momenta(self, state):
+        g = state.pose
+        q = jnp.stack([g.x, g.y, g.theta, state.psi, state.phi])
+        return q, jnp.stack(state.pu), jnp.stack(state.mu)
+
+    def kernel_step(self, alpha, h, retraction, state, c0, c1):
+        """One RDP step (paper Sec. 5.2, corrected): the steering row is explicit,
+        ``u^phi = b_phi / (2 J)``, then the 2 x 2 solve of :meth:`_solve` at ``phi_a``; the incoming
+        momenta of the next node are ``pu = d_u l + h alpha f_{k+alpha}`` (``d_r l = 0``) and
+        ``mu = (I + ad_{h xi} / 2)^T d_xi l``."""
+        a = alpha
+        m, l, inertia, jj = self.m, self.l, self.I, self.J
+        ml2 = m * l**2
+        ck, sk = state.cos_phi, state.sin_phi
+        fa = ((1 - a) * c0[0] + a * c1[0], (1 - a) * c0[1] + a * c1[1])
+        b = (state.pu[0] + h * (1 - a) * fa[0], state.pu[1] + h * (1 - a) * fa[1])
+        u_phi = b[1] / (2 * jj)
+        phi_next = state.phi + h * u_phi
+        if isinstance(a, float) and a == 0.0:  # phi_a = phi_k: reuse the carried values
+            sa, ca = sk, ck
+            sn, cn = sincos(phi_next)
+        elif isinstance(a, float) and a == 1.0:  # phi_a = phi_{k+1}
+            sn, cn = sincos(phi_next)
+            sa, ca = sn, cn
+        else:
+            sa, ca = sincos(state.phi + a * h * u_phi)
+            sn, cn = sincos(phi_next)
+        sa, ca, sn, cn = saved(*materialise(sa, ca, sn, cn))
+        e1k = (2 * sk * ck, -2 * l * ck**2)
+        nu = state.mu[0] * e1k[0] + state.mu[1] * e1k[1]  # <mu_in, e_1(phi_k)> (mu_3 pairs with 0)
+        u_psi, c = self._solve(b[0], nu, sk, ck, sa, ca)
+        xi = (c * 2 * sa * ca, -2 * l * ca**2 * c, jnp.zeros_like(c))
+        dl_du = (inertia * (u_psi + xi[0]), 2 * jj * u_phi)
+        mu_new = (ml2 * xi[0] + inertia * u_psi, m * xi[1], m * xi[2])
+        hxi = tuple(h * x for x in xi)
+        # residual of (23) (psi, phi rows) and (21), rebuilt from the solution
+        jump = tuple(x - y for x, y in zip(dtau1_transpose(hxi, mu_new, 1.0), state.mu))
+        a_k = (inertia * sk**2 / ml2, -inertia * sk * ck / (m * l))  # first column of A(phi_k)
+        hor0 = dl_du[0] - (a_k[0] * jump[0] + a_k[1] * jump[1]) - b[0]
+        vert = e1k[0] * jump[0] + e1k[1] * jump[1]
+        scale = 1.0 + jnp.sqrt(b[0] ** 2 + b[1] ** 2) + jnp.sqrt(sum(x**2 for x in state.mu))
+        residual = jnp.sqrt(hor0**2 + (dl_du[1] - b[1]) ** 2 + vert**2) / scale
+        singular = (jnp.abs(cn) < jnp.finfo(cn.dtype).eps ** 0.25) | (cn * ck < 0)
+        new = SnakeboardKernelState(
+            pose_retract(state.pose, hxi, retraction),
+            state.psi + h * u_psi,
+            phi_next,
+            cn,
+            sn,
+            (dl_du[0] + h * a * fa[0], dl_du[1] + h * a * fa[1]),
+            dtau1_transpose(hxi, mu_new, -1.0),
+        )
+        return new, residual, singular
+
+    def kernel_observe(self, state, c):
+        ck, sk = state.cos_phi, state.sin_phi
+        l = self.l
+        nu = state.mu[0] * 2 * sk * ck - state.mu[1] * 2 * l * ck**2
+        u_psi, cc = self._solve(state.pu[0], nu, sk, ck, sk, ck)
+        u = jnp.stack([u_psi, state.pu[1] / (2 * self.J)])
+        xi = jnp.stack([cc * 2 * sk * ck, -2 * l * ck**2 * cc, jnp.zeros_like(cc)])
+        g = state.pose
+        q = jnp.stack([g.x, g.y, g.theta, state.psi, state.phi])
+        return self.observation(q, u, xi, c, rotation=(g.cos, g.sin), momentum=nu[None])

@@ -1,0 +1,175 @@
+"""Discrete-time dynamics: any system and integrator as ``x_{k+1} = f(x_k, u_k, u_{k+1}, k)``.
+
+The step of an integrator, with the controls of a step given by their values at the step's two
+ends and interpolated linearly in between (exactly what :class:`~ldap_jax.Sampled` controls on
+the same grid give to :func:`~ldap_jax.simulate`), is a discrete-time dynamical system. This
+module exposes it, on a flat state vector, for optimizers that want ``f`` and its Jacobians
+(iLQR, DDP, SQP, MPC, tracking), the way trajax's ``dynamics(x, u, t)`` is used.
+
+The flat state of RDP is minimal: ``x = (q, P, nu)`` with ``P = pu - A(r)^T mu`` (n) and
+``nu = e(r)^T mu`` (c), the only parts of the carried momenta that a step reads (two carried pairs
+with the same ``(P, nu)`` are the same state), so ``df/dx`` has no redundant directions. Other
+integrators use their state flattened.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jax.flatten_util import ravel_pytree
+from jaxtyping import Array, ArrayLike, Float
+
+from ._linalg import solve
+from ._validation import cast_floats, check_array
+from .integrators import RDP, AbstractIntegrator
+from .systems import AbstractSystem, Observation
+
+__all__ = ["DiscreteDynamics", "discretize"]
+
+
+class DiscreteDynamics(eqx.Module):
+    """``x_{k+1} = f(x_k, u_k, u_{k+1}, k)`` for a system, an integrator and a step ``h``.
+
+    ``u_k`` are control channel values at ``t_k = t0 + k h`` (shape ``(n_controls,)``); inside a
+    step the integrator reads them interpolated linearly. All methods are pure, jit-able,
+    vmap-able and differentiable; the state is a flat vector of length :attr:`n_state`.
+
+    Attributes:
+        system, integrator: the model and the scheme.
+        h: step (s). t0: time of node 0 (s).
+
+    Example:
+        >>> dyn = lj.discretize(lj.Car(), lj.RDP(order=6), h=0.1)
+        >>> x = dyn.init(q0, qdot0, u0)
+        >>> x1 = dyn.step(x, u0, u1, 0)
+        >>> A = jax.jacfwd(dyn.step)(x, u0, u1, 0)   # df/dx
+    """
+
+    system: AbstractSystem
+    integrator: AbstractIntegrator
+    h: Array
+    t0: Array
+    template: Any = eqx.field(static=True)
+
+    @property
+    def n_state(self) -> int:
+        """Length of the flat state."""
+        return self.template[0]
+
+    @property
+    def n_controls(self) -> int:
+        return self.system.n_controls
+
+    def _minimal(self) -> bool:
+        return isinstance(self.integrator, RDP)
+
+    # ------------------------------------------------------------------ state <-> flat
+    def pack(self, state: Any) -> Float[Array, " n"]:
+        """The flat vector of an integrator state."""
+        if self._minimal():
+            q, pu, mu = self.integrator.momenta(self.system, state)
+            r = q[3:]
+            p = pu - self.system.connection(r).T @ mu
+            nu = self.system.symmetry_basis(r).T @ mu
+            return jnp.concatenate([q, p, nu])
+        return ravel_pytree(state)[0]
+
+    def unpack(self, x: Float[Array, " n"], u: Array | None = None) -> Any:
+        """The integrator state of a flat vector (``u``: the controls at its node, used by
+        integrators that carry a warm start)."""
+        system = self.system
+        if self._minimal():
+            d, n = system.n_config, system.n_shape
+            q, p, nu = x[:d], x[d : d + n], x[d + n :]
+            r = q[3:]
+            e = system.symmetry_basis(r)
+            mu = e @ solve(e.T @ e, nu) if e.shape[1] else jnp.zeros(3, x.dtype)
+            pu = p + system.connection(r).T @ mu
+            if self.integrator.uses_kernel(system):
+                return system.kernel_init(q, pu, mu)
+            from .integrators._rdp import RDPState
+
+            u_prev = jnp.zeros(n, x.dtype) if u is None else system.inputs(u)[1]
+            return RDPState(q=q, pu=pu, mu=mu, u=u_prev, w=jnp.zeros(e.shape[1], x.dtype))
+        _, unravel = ravel_pytree(self._example_state(x.dtype))
+        return unravel(x)
+
+    def _example_state(self, dtype):
+        d = self.system.n_config
+        z = jnp.zeros(d, dtype)
+        c = jnp.zeros((len(self.integrator.control_nodes), self.system.n_controls), dtype)
+        return self.integrator.init(self.system, jnp.ones((), dtype), z, z, c)
+
+    # ------------------------------------------------------------------ dynamics
+    def stage_controls(self, u0: Array, u1: Array) -> Float[Array, "S n_controls"]:
+        """The values the integrator reads on a step: linear interpolation at its fractions."""
+        f = jnp.asarray(self.integrator.control_nodes, u0.dtype)[:, None]
+        return (1 - f) * u0[None] + f * u1[None]
+
+    def init(self, q0: ArrayLike, qdot0: ArrayLike, u0: ArrayLike) -> Float[Array, " n"]:
+        """The flat state at node 0 from a configuration and a velocity on the constraints
+        (kinematic entries of ``qdot0`` are taken from ``u0``)."""
+        system = self.system
+        q0, qdot0, u0 = jnp.asarray(q0), jnp.asarray(qdot0), jnp.asarray(u0)
+        qdot0 = system.consistent_qdot(q0, qdot0, u0)
+        c = self.stage_controls(u0, u0)
+        return self.pack(self.integrator.init(system, self.h, q0, qdot0, c))
+
+    def step(self, x: Float[Array, " n"], u0: ArrayLike, u1: ArrayLike, k: ArrayLike = 0) -> Float[Array, " n"]:
+        """``x_{k+1}`` from ``x_k`` and the control values at both ends of the step (``k`` is
+        accepted for time-varying use; the dynamics are autonomous in ``k`` for open-loop
+        controls, which enter only through ``u``)."""
+        return self.step_with_info(x, u0, u1, k)[0]
+
+    def step_with_info(self, x, u0, u1, k=0):
+        """``(x_{k+1}, StepInfo)``: the step's result code and residual."""
+        u0, u1 = jnp.asarray(u0, x.dtype), jnp.asarray(u1, x.dtype)
+        state = self.unpack(x, u0)
+        state, info = self.integrator.step(self.system, self.h, state, self.stage_controls(u0, u1))
+        return self.pack(state), info
+
+    def observe(self, x: Float[Array, " n"], u: ArrayLike) -> Observation:
+        """The node held by ``x``: configuration, velocity (from the momenta for RDP) and the
+        diagnostics, with ``u`` the controls at the node."""
+        u = jnp.asarray(u, x.dtype)
+        return self.integrator.observe(self.system, self.unpack(x, u), u)
+
+    def rollout(self, x0: Float[Array, " n"], us: Float[Array, "K n_controls"]) -> Float[Array, "K n"]:
+        """States at nodes ``0 .. K-1`` from ``x0`` and the control values ``us`` at the nodes
+        (one ``lax.scan``)."""
+
+        def body(x, uu):
+            x1 = self.step(x, uu[0], uu[1])
+            return x1, x1
+
+        _, xs = jax.lax.scan(body, x0, (us[:-1], us[1:]))
+        return jnp.concatenate([x0[None], xs])
+
+
+def discretize(
+    system: AbstractSystem, integrator: AbstractIntegrator | None = None, *, h: ArrayLike, t0: ArrayLike = 0.0
+) -> DiscreteDynamics:
+    """The discrete-time dynamics ``x_{k+1} = f(x_k, u_k, u_{k+1}, k)`` of ``integrator`` (default
+    ``lj.RDP()``) on ``system`` with step ``h`` (s).
+
+    Raises:
+        TypeError, ValueError: a bad system, integrator or step.
+    """
+    integrator = RDP() if integrator is None else integrator
+    if not isinstance(system, AbstractSystem):
+        raise TypeError(f"'system' must be an ldap_jax system, got {type(system)}")
+    if not isinstance(integrator, AbstractIntegrator):
+        raise TypeError(f"'integrator' must be an ldap_jax integrator, got {type(integrator)}")
+    h_arr = check_array("h", h, ())
+    if not isinstance(h_arr, jax.core.Tracer) and not bool(h_arr != 0):
+        raise ValueError(f"'h' must be non-zero, got {h}")
+    dtype = h_arr.dtype
+    system, integrator = cast_floats((system, integrator), dtype)
+    probe = DiscreteDynamics(system, integrator, h_arr, jnp.asarray(t0, dtype), (0,))
+    d = system.n_config
+    z = jnp.zeros(d, dtype)
+    n = jax.eval_shape(lambda: probe.init(z, z, jnp.zeros(system.n_controls, dtype))).shape[0]
+    return DiscreteDynamics(system, integrator, h_arr, jnp.asarray(t0, dtype), (int(n),))

@@ -1,0 +1,97 @@
+"""Feedback policies: controls computed from the state, ``u = pi(t, q, qdot)``."""
+
+from __future__ import annotations
+
+import abc
+from collections.abc import Callable
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float
+
+from ._controls import AbstractControls
+
+__all__ = ["AbstractPolicy", "Policy", "LinearPolicy"]
+
+
+class AbstractPolicy(eqx.Module):
+    """A feedback law ``u = pi(t, q, qdot)`` with ``n_channels`` outputs.
+
+    :func:`~ldap_jax.simulate` samples it like a sampled-data controller: on the step
+    ``[t_k, t_k + h]`` every control time ``t`` the integrator reads gets ``pi(t, q_k, qdot_k)``,
+    with the state of the step's start (the feedforward part may vary within the step, the
+    feedback sees the last node). With zero feedback a policy reproduces its open-loop
+    feedforward exactly.
+    """
+
+    @property
+    @abc.abstractmethod
+    def n_channels(self) -> int: ...
+
+    @abc.abstractmethod
+    def __call__(self, t: Array, q: Array, qdot: Array) -> Float[Array, " n_channels"]: ...
+
+
+class Policy(AbstractPolicy):
+    """A policy from any function ``fn(t, q, qdot) -> (n_channels,)`` (pure and jit-able).
+
+    Args:
+        fn: the feedback law (an ``eqx.Module`` holding arrays is differentiable through them).
+        n_channels: number of outputs.
+    """
+
+    fn: Callable
+    channels: int = eqx.field(static=True)
+
+    def __init__(self, fn: Callable, n_channels: int):
+        if not callable(fn):
+            raise TypeError(f"Policy: 'fn' must be callable, got {type(fn)}")
+        if isinstance(n_channels, bool) or not isinstance(n_channels, int) or n_channels < 0:
+            raise ValueError(f"Policy: 'n_channels' must be a non-negative integer, got {n_channels!r}")
+        self.fn = fn
+        self.channels = n_channels
+
+    @property
+    def n_channels(self) -> int:
+        return self.channels
+
+    def __call__(self, t, q, qdot):
+        return jnp.asarray(self.fn(t, q, qdot))
+
+
+class LinearPolicy(AbstractPolicy):
+    """Time-varying affine feedback around a reference:
+    ``u(t) = u_ff(t) + K(t) [x_ref(t) - x]`` with ``x = (q, qdot)``.
+
+    Args:
+        feedforward: open-loop controls ``u_ff``.
+        gain: ``K``, shape (n_channels, 2 d) (constant) or ``(T, n_channels, 2 d)`` sampled with
+            ``reference`` (held piecewise constant between samples).
+        reference: ``x_ref`` samples ``(T, 2 d)`` at times ``times`` (linear interpolation), or
+            ``None`` for feedback around zero.
+        times: ``(T,)`` sample times of ``reference`` and a time-varying ``gain``.
+    """
+
+    feedforward: AbstractControls
+    gain: Array
+    reference: Array | None = None
+    times: Array | None = None
+
+    @property
+    def n_channels(self) -> int:
+        return self.feedforward.n_channels
+
+    def __call__(self, t, q, qdot):
+        x = jnp.concatenate([q, qdot])
+        if self.times is None:
+            x_ref = jnp.zeros_like(x) if self.reference is None else self.reference
+            gain = self.gain
+        else:
+            x_ref = jnp.stack([jnp.interp(t, self.times, col) for col in self.reference.T])
+            i = jnp.clip(jnp.searchsorted(self.times, t, side="right") - 1, 0, self.times.shape[0] - 1)
+            gain = self.gain if self.gain.ndim == 2 else self.gain[i]
+        return self.feedforward(t) + gain @ (x_ref - x)
+
+
+def _as_array(x: ArrayLike) -> Array:
+    return jnp.asarray(x)

@@ -1,0 +1,74 @@
+"""Result codes of rollouts and solves, and the one rule that combines them."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Bool
+
+__all__ = ["RESULTS", "first_failure"]
+
+
+class RESULTS(eqx.Enumeration):
+    """What happened to a trajectory (``Trajectory.result``) or a step (``StepInfo.result``).
+
+    Compare with ``==`` (``traj.result == lj.RESULTS.successful``); ``RESULTS[traj.result]`` gives
+    the message; ``int(traj.result._value)`` the integer code (0 success, as listed here). Each
+    message says what to do about it.
+    """
+
+    successful = ""
+    nonfinite = (
+        "non-finite values (NaN or inf) in the state: the step is far too large for the motion, "
+        "or an input (initial state, control, parameter) is not finite. Reduce the step or check "
+        "the inputs."
+    )
+    singular = (
+        "singular configuration: the reduced description breaks down (the snakeboard at "
+        "cos(phi) = 0, or where a System's `singularity` vanishes). Keep the steering away from it "
+        "(e.g. a steering torque matched to phidot(0)), or reduce the step."
+    )
+    not_converged = (
+        "the implicit solve (Newton) did not converge: the step is too large (the root may "
+        "have vanished in a fold of the discrete equations). Reduce the step or raise the "
+        "integrator's newton_iterations."
+    )
+    diverged = (
+        "diverged: the energy balance E - E0 - W grew past `divergence` times the energy scale "
+        "(or the state left the finite range). The run is numerically unstable at this step: "
+        "reduce the step, or raise `divergence` if the growth is physical."
+    )
+    invalid_input = (
+        "an input is invalid: t_final <= t0, a non-finite initial state, qdot0 violating the "
+        "constraints, a physical parameter out of range (e.g. a non-positive mass, or I >= m l^2 "
+        "for the snakeboard) or alpha outside [0, 1]. It was found on traced values (inside "
+        "jit or vmap), so it is reported here for this trajectory instead of raised; call "
+        "simulate eagerly on this member to get the error naming the argument."
+    )
+    max_steps_reached = (
+        "the adaptive solver reached max_steps before the final time (lj.reference): the "
+        "problem is stiff, singular or the tolerances are too tight for the budget."
+    )
+
+
+def first_failure(
+    result: RESULTS, index: Array, step_result: RESULTS, k: ArrayLike
+) -> tuple[RESULTS, Array, Bool[Array, ""]]:
+    """The failure rule of every rollout loop: the first failure wins.
+
+    Args:
+        result: the result so far (``successful`` until something failed).
+        index: the step index of the first failure so far (any value while successful).
+        step_result: what the current step reported.
+        k: the current step index.
+
+    Returns:
+        ``(result, index, keep)``: the updated result and failure index, and ``keep``, True when
+        the step's new state may be kept (nothing has failed yet, including this step). A loop
+        freezes its state when ``keep`` is False and reports NaN for every later node.
+    """
+    ok_before = result == RESULTS.successful
+    failed_now = ok_before & (step_result != RESULTS.successful)
+    new_result = RESULTS.where(ok_before, step_result, result)
+    new_index = jnp.where(failed_now, jnp.asarray(k, jnp.int32), index)
+    return new_result, new_index, ~failed_now & ok_before

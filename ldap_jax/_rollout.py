@@ -1,0 +1,322 @@
+"""The one rollout loop: any integrator on any system, every save policy, one failure rule.
+
+:func:`rollout` drives ``integrator.step`` with ``lax.scan`` and reports nodes through
+``integrator.observe``. :func:`ldap_jax.simulate`, the Monte Carlo study and the discrete-time
+dynamics of the control module all run it; the closed-form car and snakeboard kernels plug in
+through the integrator (their state is the kernel's), not through a loop of their own.
+
+Per step ``k`` (node ``k`` to node ``k + 1``): read the controls at the integrator's fractions of
+the step (or ask the feedback policy, with the state of node ``k``), step, observe node ``k + 1``
+(configuration, velocity from the carried momenta, diagnostics), accumulate the work, apply the
+failure rule (:func:`ldap_jax._results.first_failure`: the first failure wins, the state is
+frozen, every later node is NaN) and, with diagnostics on, the divergence test on the energy
+balance.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array
+
+from ._controls import AbstractControls
+from ._numerics import SAVED, materialise, saved
+from ._results import RESULTS, first_failure
+from .integrators import AbstractIntegrator
+from .systems import AbstractSystem, Observation
+
+__all__ = ["rollout", "RolloutOutput", "check_checkpoint", "check_save", "SavePlan"]
+
+
+# ----------------------------------------------------------------------------- options
+def check_checkpoint(checkpoint: Any) -> bool | str | int:
+    """Validate the ``checkpoint`` option of :func:`ldap_jax.simulate`."""
+    if checkpoint in (False, None):
+        return False
+    if checkpoint is True or checkpoint == "step":
+        return "step"
+    if checkpoint == "sqrt":
+        return "sqrt"
+    if isinstance(checkpoint, (int, np.integer)) and not isinstance(checkpoint, bool) and checkpoint >= 1:
+        return int(checkpoint)
+    raise ValueError(
+        f"'checkpoint' must be False, True/'step', 'sqrt' or a positive chunk length, got {checkpoint!r}"
+    )
+
+
+class SavePlan(NamedTuple):
+    """Which nodes a rollout returns: every ``stride``-th node (``stride`` divides ``n_steps``),
+    then, if ``indices`` is not None, only the nodes with those numbers (multiples of ``stride``)."""
+
+    stride: int
+    indices: tuple[int, ...] | None
+
+
+def check_save(save: Any, n_steps: int) -> SavePlan:
+    """Validate ``save`` (``"all"``, ``"final"``, a stride ``k`` or a sequence of node indices)."""
+    if isinstance(save, str):
+        if save == "all":
+            return SavePlan(1, None)
+        if save == "final":
+            return SavePlan(n_steps, (n_steps,))
+        raise ValueError(f"'save' must be 'all', 'final', a positive stride or node indices, got {save!r}")
+    if isinstance(save, (int, np.integer)) and not isinstance(save, bool):
+        if save < 1 or n_steps % save:
+            raise ValueError(f"'save': a stride must be a positive divisor of n_steps={n_steps}, got {save}")
+        return SavePlan(int(save), None)
+    if isinstance(save, (Sequence, np.ndarray)) and not isinstance(save, (str, bytes)):
+        idx = [int(i) for i in np.asarray(save).ravel()]
+        if not idx or any(i < 0 or i > n_steps for i in idx) or any(b <= a for a, b in zip(idx, idx[1:])):
+            raise ValueError(
+                f"'save': node indices must be strictly increasing integers in [0, n_steps={n_steps}], got {save!r}"
+            )
+        return SavePlan(1, tuple(idx))
+    raise ValueError(f"'save' must be 'all', 'final', a positive stride or node indices, got {save!r}")
+
+
+# ----------------------------------------------------------------------------- the loop
+class RolloutOutput(NamedTuple):
+    """What :func:`rollout` returns; leading axis = saved nodes (M)."""
+
+    t: Array
+    obs: Observation  # fields (M, ...); energy etc. computed whether or not they are returned
+    work: Array  # (M,)
+    step_residual: Array  # (M,) largest relative step residual since the previous saved node
+    converged: Array  # (M,) every implicit solve since the previous saved node converged
+    iterations: Array  # (M,) Newton iterations since the previous saved node
+    result: RESULTS
+    failure_index: Array
+
+
+class _Carry(NamedTuple):
+    state: Any
+    obs: Observation
+    work: Array
+    abs_work: Array
+    residual: Array
+    converged: Array
+    iterations: Array
+    result: RESULTS
+    failure_index: Array
+
+
+def _masked(tree, mask):
+    return jax.tree_util.tree_map(lambda x: x * mask if jnp.issubdtype(x.dtype, jnp.inexact) else x, tree)
+
+
+def _where(mask, a, b):
+    return jax.tree_util.tree_map(lambda x, y: jnp.where(mask, x, y), a, b)
+
+
+def rollout(
+    system: AbstractSystem,
+    integrator: AbstractIntegrator,
+    q0: Array,
+    qdot0: Array,
+    controls: Any,
+    t0: Array,
+    h: Array,
+    n_steps: int,
+    *,
+    plan: SavePlan = SavePlan(1, None),
+    diagnostics: bool = True,
+    checkpoint: bool | str | int = False,
+    divergence: float | None = 100.0,
+    initial_result: RESULTS = RESULTS.successful,
+) -> RolloutOutput:
+    """Integrate from ``(q0, qdot0)`` at ``t0`` with ``n_steps`` steps of size ``h``.
+
+    Inputs are already validated and cast to one dtype (:func:`ldap_jax.simulate` does that);
+    ``qdot0`` is consistent with the controls (kinematic entries). ``controls`` is an
+    :class:`~ldap_jax.AbstractControls` (open loop) or an :class:`~ldap_jax.AbstractPolicy`
+    (``u = pi(t, q_k, qdot_k)`` at the step's control times, with the state of the step's start).
+
+    Args:
+        plan: which nodes to return (:func:`check_save`).
+        diagnostics: observe every node (energy, momentum, constraint residual, power, the
+            work integral and the divergence test); with False only the saved nodes are observed.
+        checkpoint: reverse-mode memory policy (:func:`check_checkpoint`).
+        divergence: the run fails with ``RESULTS.diverged`` when the energy balance
+            ``|E_k - E_0 - W_k|`` exceeds ``divergence * (|E_0| + int |P| dt)`` at an observed node
+            (``None``: never). Needs ``diagnostics``.
+        initial_result: a failure found in the inputs on traced values (the run then reports it
+            with every node NaN).
+    """
+    from ._policy import AbstractPolicy
+
+    dtype = q0.dtype
+    fractions = jnp.asarray(integrator.control_nodes, dtype)
+    node_is_last = float(integrator.control_nodes[-1]) == 1.0
+    policy = isinstance(controls, AbstractPolicy)
+    if policy:
+        sample_open = None
+    else:
+        sample_open = controls.sampler(h, fractions)
+
+    def sample(k, obs):
+        t = t0 + h * k.astype(dtype)
+        if policy:
+            return jax.vmap(lambda tt: controls(tt, obs.q, obs.qdot))(t + h * fractions)
+        return sample_open(t)
+
+    def node_controls(k, c_stage):
+        return c_stage[-1] if node_is_last else controls(t0 + h * k.astype(dtype))
+
+    c_first = controls(t0, q0, qdot0) if policy else controls(t0)
+    c_stage0 = sample(jnp.zeros((), jnp.int32), Observation(q0, qdot0, *([None] * 4)))
+    state0 = integrator.init(system, h, q0, qdot0, c_stage0)
+    obs0 = integrator.observe(system, state0, c_first)
+    obs0 = obs0._replace(qdot=qdot0)  # node 0 reports the given velocity
+    # invalid inputs (found on traced values): NaN from node 0 on
+    obs0 = _masked(obs0, jnp.where(initial_result == RESULTS.successful, 1.0, jnp.nan).astype(dtype))
+    energy_scale0 = jnp.abs(obs0.energy)
+    zero = jnp.zeros((), dtype)
+    check_divergence = diagnostics and divergence is not None
+
+    def step(carry: _Carry, k, observe: bool):
+        """Step k: node k -> node k + 1 (observed when ``observe``)."""
+        c_stage = sample(k, carry.obs)
+        new_state, info = integrator.step(system, h, carry.state, c_stage)
+        step_result = info.result
+        obs, work, abs_work = carry.obs, carry.work, carry.abs_work
+        if observe:
+            if policy:
+                obs_new = integrator.observe(system, new_state, c_stage[-1])
+                c_node = controls(t0 + h * (k + 1).astype(dtype), obs_new.q, obs_new.qdot)
+                obs_new = obs_new._replace(power=system.power(system.inputs(c_node)[0], obs_new.qdot[3:]))
+            else:
+                obs_new = integrator.observe(system, new_state, node_controls(k + 1, c_stage))
+            if diagnostics:
+                work = carry.work + 0.5 * h * (carry.obs.power + obs_new.power)
+                abs_work = carry.abs_work + 0.5 * jnp.abs(h) * (jnp.abs(carry.obs.power) + jnp.abs(obs_new.power))
+                ok_diag = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in obs_new]))
+                step_result = RESULTS.where(
+                    (step_result == RESULTS.successful) & ~ok_diag, RESULTS.nonfinite, step_result
+                )
+                if check_divergence:
+                    balance = jnp.abs(obs_new.energy - obs0.energy - work)
+                    bound = divergence * (energy_scale0 + abs_work) + jnp.finfo(dtype).tiny
+                    step_result = RESULTS.where(
+                        (step_result == RESULTS.successful) & (balance > bound), RESULTS.diverged, step_result
+                    )
+            obs = obs_new
+        result, index, keep = first_failure(carry.result, carry.failure_index, step_result, k)
+        # computed once: XLA would otherwise fuse the whole step into every consumer of the mask
+        (keep,) = materialise(keep)
+        if checkpoint is False:
+            (keep,) = saved(keep)
+        new = _Carry(
+            state=_where(keep, new_state, carry.state),
+            obs=_where(keep, obs, carry.obs),
+            work=jnp.where(keep, work, carry.work),
+            abs_work=jnp.where(keep, abs_work, carry.abs_work),
+            residual=jnp.maximum(carry.residual, info.residual),
+            converged=carry.converged & (info.result != RESULTS.not_converged),
+            iterations=carry.iterations + info.iterations,
+            result=result,
+            failure_index=index,
+        )
+        return new
+
+    def emit(carry: _Carry):
+        # a node after a failure is NaN, and so is every derivative through it: the mask
+        # multiplies (a `where` would give such nodes a silent zero gradient)
+        mask = jnp.where(carry.result == RESULTS.successful, 1.0, jnp.nan).astype(dtype)
+        obs = _masked(carry.obs, mask)
+        out = (obs, carry.work * mask, carry.residual, carry.converged, carry.iterations)
+        return carry._replace(residual=zero, converged=jnp.ones((), bool), iterations=jnp.zeros((), jnp.int32)), out
+
+    stride = plan.stride
+    n_seg = n_steps // stride
+    observe_inner = diagnostics or policy
+
+    def inner_body(carry, k):
+        return step(carry, k, observe_inner), None
+
+    def segment(carry, j):
+        ks = j * stride + jnp.arange(stride - 1, dtype=jnp.int32)
+        if stride > 1:
+            carry, _ = jax.lax.scan(_policy_body(inner_body, checkpoint), carry, ks)
+        carry = step(carry, j * stride + stride - 1, True)
+        return emit(carry)
+
+    carry0 = _Carry(
+        state=state0,
+        obs=obs0,
+        work=zero,
+        abs_work=zero,
+        residual=zero,
+        converged=jnp.ones((), bool),
+        iterations=jnp.zeros((), jnp.int32),
+        result=initial_result,
+        failure_index=jnp.where(initial_result == RESULTS.successful, n_steps, 0).astype(jnp.int32),
+    )
+    seg_body = segment
+    if checkpoint == "sqrt" or (isinstance(checkpoint, int) and not isinstance(checkpoint, bool)):
+        if stride == 1:  # nested: chunks of ~sqrt(N) (or the given length) steps, each checkpointed
+            return _chunked(step, emit, carry0, n_steps, checkpoint, plan, t0, h, obs0)
+        seg_body = jax.checkpoint(segment)
+    elif stride == 1:
+        seg_body = _policy_body(segment, checkpoint)
+    carry, outs = jax.lax.scan(seg_body, carry0, jnp.arange(n_seg, dtype=jnp.int32))
+    return _assemble(carry, outs, obs0, plan, t0, h, n_steps)
+
+
+def _policy_body(body, checkpoint):
+    """The scan body under the memory policy (the segmented and chunked cases are handled apart)."""
+    if checkpoint is False:
+        return jax.checkpoint(body, policy=jax.checkpoint_policies.save_only_these_names(SAVED))
+    if checkpoint == "step":
+        return jax.checkpoint(body)
+    return body
+
+
+def _chunked(step, emit, carry0, n_steps, checkpoint, plan, t0, h, obs0):
+    """Save every node, ~sqrt(N) checkpointed chunks of ~sqrt(N) steps (or chunks of the given
+    length): O(sqrt N) stored carries for about one extra forward pass."""
+    k = max(1, math.isqrt(n_steps - 1) + 1) if checkpoint == "sqrt" else min(int(checkpoint), n_steps)
+    n_chunks = -(-n_steps // k)
+    valid_steps = np.arange(n_chunks * k) < n_steps
+
+    def masked(carry, inp):
+        kk, ok = inp
+        new, out = emit(step(carry, kk, True))
+        return _where(ok, new, carry), out
+
+    @jax.checkpoint
+    def chunk(carry, inp):
+        return jax.lax.scan(masked, carry, inp)
+
+    ks = jnp.arange(n_chunks * k, dtype=jnp.int32).reshape(n_chunks, k)
+    carry, outs = jax.lax.scan(chunk, carry0, (ks, jnp.asarray(valid_steps).reshape(n_chunks, k)))
+    outs = jax.tree_util.tree_map(lambda o: o.reshape((n_chunks * k,) + o.shape[2:])[:n_steps], outs)
+    return _assemble(carry, outs, obs0, plan, t0, h, n_steps)
+
+
+def _assemble(carry, outs, obs0, plan, t0, h, n_steps) -> RolloutOutput:
+    """Prepend node 0 to the scanned outputs and select the saved nodes."""
+    dtype = obs0.q.dtype
+    first = (obs0, jnp.zeros((), dtype), jnp.zeros((), dtype), jnp.ones((), bool), jnp.zeros((), jnp.int32))
+    outs = jax.tree_util.tree_map(lambda x0, xs: jnp.concatenate([jnp.asarray(x0)[None], xs]), first, outs)
+    nodes = np.arange(0, n_steps + 1, plan.stride)
+    if plan.indices is not None:
+        sel = np.searchsorted(nodes, np.asarray(plan.indices))
+        outs = jax.tree_util.tree_map(lambda x: x[sel], outs)
+        nodes = nodes[sel]
+    obs, work, residual, converged, iterations = outs
+    return RolloutOutput(
+        t=t0 + h * jnp.asarray(nodes, dtype),
+        obs=obs,
+        work=work,
+        step_residual=residual,
+        converged=converged,
+        iterations=iterations,
+        result=carry.result,
+        failure_index=carry.failure_index,
+    )
+

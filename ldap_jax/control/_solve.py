@@ -1,0 +1,173 @@
+"""``lc.solve``: a task's optimal control problem with hard constraints, by the interior-point
+method of :mod:`._ipm` on the discrete dynamics of the task's integrator."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float, Int
+
+from .._discrete import DiscreteDynamics, discretize
+from .._validation import check_positive_int
+from ._costs import TerminalRest, pose_error
+from ._ipm import SOLVER_RESULTS, IPMOptions, IPMState, OCPFunctions, ipm_solve
+from ._parameterizations import SampledControls
+from ._tasks import Task
+
+__all__ = ["Solution", "solve", "problem_functions"]
+
+
+class Solution(eqx.Module):
+    """The result of :func:`solve` (batched along leading axes under ``vmap``).
+
+    Attributes:
+        params: the optimal parameters, (N + 1, n_channels): ``task.controls(sol.params)`` are
+            the controls.
+        converged: the KKT error met ``tol``.
+        iterations: interior-point iterations used.
+        cost: the objective at the solution.
+        max_violation: largest violation of the model's constraints at the solution (dynamics
+            defects, terminal equalities, bounds; bounds are kept strictly by the method).
+        kkt_error: the final scaled KKT error.
+        result: a :data:`SOLVER_RESULTS` item (``SOLVER_RESULTS[sol.result]`` is the message).
+        states: the flat states of the discrete dynamics at the nodes, (N + 1, n).
+        multipliers: the dynamics multipliers (N + 1, n + n_channels) and the terminal ones (p,).
+    """
+
+    params: Float[Array, "K m"]
+    converged: Bool[Array, ""]
+    iterations: Int[Array, ""]
+    cost: Float[Array, ""]
+    max_violation: Float[Array, ""]
+    kkt_error: Float[Array, ""]
+    result: SOLVER_RESULTS
+    states: Float[Array, "K n"]
+    multipliers: tuple[Array, Array]
+
+
+def problem_functions(task: Task, dyn: DiscreteDynamics, x0: Array) -> tuple[OCPFunctions, Array, Array]:
+    """The task's problem in the solver's stage form: ``chi = (x, u)`` (flat state, scaled node
+    controls), ``v`` the next node's scaled controls. Returns ``(functions, lo, hi)``."""
+    system, scale, h = task.system, task.parameterization.scale, task.h
+    n = dyn.n_state
+    d = system.n_config
+    terms = task.objective
+
+    def split(chi):
+        return chi[:n], chi[n:]
+
+    def dynamics(chi, v):
+        x, u = split(chi)
+        return jnp.concatenate([dyn.step(x, u * scale, v * scale), v])
+
+    def first(v):
+        return jnp.concatenate([x0, v])
+
+    def stage_cost(chi):
+        x, u = split(chi)
+        c = u * scale
+        obs = dyn.observe(x, c)
+        return sum((t.stage(system, obs, c, h) for t in terms), jnp.zeros((), chi.dtype))
+
+    def terminal_cost(chi):
+        x, u = split(chi)
+        obs = dyn.observe(x, u * scale)
+        return sum((t.terminal(system, obs, task.q0) for t in terms), jnp.zeros((), chi.dtype))
+
+    def terminal(chi):
+        x, u = split(chi)
+        obs = dyn.observe(x, u * scale)
+        parts = []
+        if task.goal is not None:
+            parts.append(pose_error(obs.q, task.goal))
+        if task.rest:
+            parts.append(TerminalRest(task.rest).residual(system, obs))
+        return jnp.concatenate(parts) if parts else jnp.zeros((0,), chi.dtype)
+
+    inf = jnp.full(n - d, jnp.inf, x0.dtype)
+    lo = jnp.concatenate([task.q_lower.astype(x0.dtype), -inf, task.c_lower / scale])
+    hi = jnp.concatenate([task.q_upper.astype(x0.dtype), inf, task.c_upper / scale])
+    return OCPFunctions(dynamics, first, stage_cost, terminal_cost, terminal), lo, hi
+
+
+def solve(
+    task: Task,
+    params0: Array | None = None,
+    *,
+    tol: float = 1e-8,
+    max_iterations: int = 200,
+) -> Solution:
+    """Solve ``task``'s optimal control problem with hard constraints.
+
+    Minimises the task's objective (e.g. the control effort ``sum_k h |c_k / scale|^2``) over the
+    node controls, subject to the discrete dynamics of the task's integrator, the terminal pose
+    and rest conditions as equalities, and the bounds at the nodes as inequalities, by a
+    primal-dual interior-point method with the exact Hessian of the Lagrangian and a Riccati
+    solve of each Newton step (:mod:`ldap_jax.control._ipm`). Multiple shooting: the initial
+    states come from a rollout of ``params0``. One compilation per problem structure; jit-,
+    vmap- and grad-able (see :func:`~ldap_jax.control.sensitivity` for derivatives of the optimum).
+
+    Args:
+        task: a task with per-step sampled controls (:class:`SampledControls`).
+        params0: initial guess, shape (N + 1, n_channels) (default ``task.init()``).
+        tol: stopping tolerance on the scaled KKT error (> 0).
+        max_iterations: iteration budget (a positive integer).
+
+    Returns:
+        :class:`Solution`.
+
+    Raises:
+        TypeError, ValueError: a task without sampled controls, a bad guess shape, a non-positive
+            ``tol`` or ``max_iterations``.
+    """
+    if not isinstance(task, Task):
+        raise TypeError(f"'task' must be an lc.Task (e.g. lc.parallel_park()), got {type(task)}")
+    if not isinstance(task.parameterization, SampledControls):
+        raise ValueError(
+            "solve needs per-step sampled controls (lc.SampledControls); this task uses "
+            f"{type(task.parameterization).__name__}: optimise it with lc.optimize"
+        )
+    if isinstance(tol, bool) or not isinstance(tol, (int, float)) or not (tol > 0 and np.isfinite(tol)):
+        raise ValueError(f"'tol' must be a positive number, got {tol!r}")
+    max_iterations = check_positive_int("max_iterations", max_iterations)
+    shape = (task.n_steps + 1, task.system.n_controls)
+    if params0 is None:
+        params0 = task.init()
+    params0 = jnp.asarray(params0)
+    if params0.shape != shape:
+        raise ValueError(f"'params0' must have shape {shape} (N + 1 nodes, channels), got {params0.shape}")
+    return _solve(task, params0, IPMOptions(tol=float(tol), max_iterations=max_iterations))
+
+
+@eqx.filter_jit
+def _solve(task: Task, params0: Array, options: IPMOptions) -> Solution:
+    dtype = task.q0.dtype
+    params0 = params0.astype(dtype)
+    scale = task.parameterization.scale
+    dyn = discretize(task.system, task.integrator, h=task.h)
+    x0 = dyn.init(task.q0, task.qdot0, params0[0] * scale)
+    fns, lo, hi = problem_functions(task, dyn, x0)
+    xs = dyn.rollout(x0, params0 * scale[None])
+    chi = jnp.concatenate([xs, params0], axis=1)
+    st: IPMState = ipm_solve(fns, chi, params0, lo, hi, options)
+    defects = jnp.concatenate(
+        [(fns.first(st.v[0]) - st.chi[0])[None], jax.vmap(fns.dynamics)(st.chi[:-1], st.v[1:]) - st.chi[1:]]
+    )
+    cK = fns.terminal(st.chi[-1])
+    bound_viol = jnp.max(jnp.maximum(st.chi - hi, 0.0) + jnp.maximum(lo - st.chi, 0.0))
+    violation = jnp.maximum(jnp.maximum(jnp.max(jnp.abs(defects)), jnp.max(jnp.abs(cK), initial=0.0)), bound_viol)
+    cost = jnp.sum(jax.vmap(fns.stage_cost)(st.chi)) + fns.terminal_cost(st.chi[-1])
+    n = dyn.n_state
+    return Solution(
+        params=st.v,
+        converged=st.result == SOLVER_RESULTS.successful,
+        iterations=st.iteration,
+        cost=cost,
+        max_violation=violation,
+        kkt_error=st.error,
+        result=st.result,
+        states=st.chi[:, :n],
+        multipliers=(st.y, st.nu),
+    )

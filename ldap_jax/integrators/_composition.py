@@ -1,0 +1,80 @@
+"""Symmetric compositions: higher order from a symmetric second-order step.
+
+If ``Phi_h`` is a symmetric one-step map of order 2 (``Phi_h o Phi_{-h} = id``), the composition
+``Phi_{g_s h} o ... o Phi_{g_1 h}`` with palindromic weights ``g`` (``g_i = g_{s+1-i}``,
+``sum g = 1``) reaches the order the weights are built for (Yoshida 1990; Suzuki 1990;
+McLachlan 1995; Kahan and Li 1997; Hairer, Lubich and Wanner, *Geometric Numerical Integration*,
+Sec. V.3). Each substep is a step of the base method with its own (possibly negative) size
+``g_i h``, reading the controls at its own two ends, so every structural property of the base
+step holds at every substep (for RDP: the constraints, the discrete momentum equation (21) and
+the horizontal equation (23)).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["SCHEMES", "DEFAULT_SCHEMES", "scheme_weights", "scheme_nodes"]
+
+
+def _palindrome(half: list[float]) -> tuple[float, ...]:
+    return tuple(half) + tuple(half[-2::-1])
+
+
+_SUZUKI_P = 1.0 / (4.0 - 4.0 ** (1.0 / 3.0))
+_YOSHIDA_W = 1.0 / (2.0 - 2.0 ** (1.0 / 3.0))
+
+#: Composition schemes by name: ``(order, weights)``.
+SCHEMES: dict[str, tuple[int, tuple[float, ...]]] = {
+    # Suzuki's fractal 5-stage scheme: every substep node stays inside the step (default, order 4)
+    "suzuki5": (4, (_SUZUKI_P, _SUZUKI_P, 1.0 - 4.0 * _SUZUKI_P, _SUZUKI_P, _SUZUKI_P)),
+    # Yoshida's triple jump: 3 stages, but its substeps leave [t_k, t_{k+1}] (weights > 1)
+    "triple_jump": (4, (_YOSHIDA_W, 1.0 - 2.0 * _YOSHIDA_W, _YOSHIDA_W)),
+    # McLachlan's 5-stage order-4 scheme with a small error constant (Hairer, Lubich, Wanner V.3)
+    "mclachlan5": (4, _palindrome([0.28, 0.62546642846767004501, 1.0 - 2.0 * (0.28 + 0.62546642846767004501)])),
+    # Kahan and Li's 9-stage order-6 scheme (s9odr6a): every node inside the step (default, order 6)
+    "kahan_li9": (
+        6,
+        _palindrome(
+            [
+                0.39216144400731413928,
+                0.33259913678935943860,
+                -0.70624617255763935981,
+                0.08221359629355080023,
+                0.79854399093482996340,
+            ]
+        ),
+    ),
+    # Yoshida's 7-stage order-6 scheme (solution A): fewer stages, substeps leave the step
+    "yoshida7": (
+        6,
+        _palindrome(
+            [0.784513610477560, 0.235573213359357, -1.17767998417887]
+            + [1.0 - 2.0 * (0.784513610477560 + 0.235573213359357 - 1.17767998417887)]
+        ),
+    ),
+}
+
+#: The scheme used for each order when none is named.
+DEFAULT_SCHEMES = {4: "suzuki5", 6: "kahan_li9"}
+
+
+def scheme_weights(name: str) -> tuple[float, ...]:
+    return SCHEMES[name][1]
+
+
+def scheme_nodes(weights: tuple[float, ...]) -> tuple[float, ...]:
+    """The substep boundaries as fractions of the step, ``(0, g_1, g_1 + g_2, ..., 1)``."""
+    nodes = np.concatenate([[0.0], np.cumsum(weights)])
+    nodes[-1] = 1.0
+    return tuple(float(x) for x in nodes)
+
+
+def _check_tables() -> None:  # at import: palindromic, consistent
+    for name, (_, w) in SCHEMES.items():
+        assert np.isclose(sum(w), 1.0), name
+        assert np.allclose(w, w[::-1]), name
+        assert abs(sum(x**3 for x in w)) < 1e-12, name  # the order-4 condition
+
+
+_check_tables()

@@ -1,0 +1,54 @@
+"""Reproducible random maneuvers for the study."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array
+
+from .._controls import AbstractControls, Sinusoids
+from ..systems import AbstractSystem, Snakeboard
+
+__all__ = ["sample_maneuvers"]
+
+
+def _zero_steer_rate(system: Snakeboard, q0: Array, qdot0: Array, ctl: Sinusoids):
+    """Re-phase a snakeboard maneuver's steering so that ``phidot(0) = 0``.
+
+    ``sample_maneuver`` steers with ``phi(t) = phi_c + b sin(w t + p)`` from the torque
+    ``f_phi = -2 J b w^2 sin(w t + p)``. Any second-order scheme's discrete steering rate then
+    carries a mean bias ``~ h^2 f_phi'(0) / J`` (from the first step's quadrature), a linear drift
+    of phi proportional to ``b w^3 cos(p) h^2 t`` that on 10-minute runs at coarse steps drives
+    phi into the singularity ``cos(phi) = 0``. With ``p = +-pi/2`` (``phidot(0) = 0``,
+    ``f_phi'(0) = 0``) the leading bias vanishes; ``phi_c``, ``b``, ``w`` stay random.
+    """
+    b = -ctl.amplitude[1, 0] / (2 * system.J * ctl.frequency[1, 0] ** 2)
+    phi_c = q0[4] - b * jnp.sin(ctl.phase[1, 0])
+    p_new = jnp.where(jnp.cos(ctl.phase[1, 0]) >= 0, 0.5 * jnp.pi, -0.5 * jnp.pi).astype(q0.dtype)
+    ctl = eqx.tree_at(lambda c: c.phase, ctl, ctl.phase.at[1, 0].set(p_new))
+    q0_new = q0.at[4].set(phi_c + b * jnp.sin(p_new))
+    v = system.velocities_from_qdot(q0, qdot0).at[1].set(jnp.zeros((), q0.dtype))
+    return q0_new, system.qdot_from_velocities(q0_new, v, jnp.zeros(2, q0.dtype)), ctl
+
+
+def sample_maneuvers(
+    system: AbstractSystem, n: int, seed: int, *, zero_steer_rate: bool = True
+) -> tuple[Array, Array, AbstractControls]:
+    """A reproducible batch of ``n`` random maneuvers ``(q0, qdot0, controls)`` (leading axis n).
+
+    Uses the model's ``sample_maneuver`` (random sinusoidal controls producing parallel
+    parking, sharp turns and winding; initial states on the constraints). For the snakeboard
+    with ``zero_steer_rate`` the steering phase is set so that ``phidot(0) = 0`` (see
+    :func:`_zero_steer_rate`): this keeps long coarse runs off the singularity ``cos(phi) = 0``.
+
+    Raises:
+        ValueError: ``n < 1``.
+    """
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        raise ValueError(f"'n' must be a positive integer, got {n!r}")
+    keys = jax.random.split(jax.random.PRNGKey(seed), n)
+    man = jax.vmap(system.sample_maneuver)(keys)
+    if zero_steer_rate and isinstance(system, Snakeboard):
+        man = jax.vmap(lambda a, b, c: _zero_steer_rate(system, a, b, c))(*man)
+    return man

@@ -1,0 +1,308 @@
+"""RDP of order 4 and 6: the folded momentum state, exact symmetry, composition orders, per-substep
+structure, node velocities from the momenta, gradients and bad settings."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import fitted_order, index, maneuvers, systems
+
+import ldap_jax as lj
+from ldap_jax import lie
+from ldap_jax.integrators import SCHEMES
+
+SYSTEMS = systems()
+
+
+def _reduced_momenta(system, q, pu, mu):
+    """What later steps read of a carried pair: ``pu - A(r)^T mu`` and ``e(r)^T mu``."""
+    r = q[3:]
+    return jnp.concatenate([pu - system.connection(r).T @ mu, system.symmetry_basis(r).T @ mu])
+
+
+# --------------------------------------------------------------------- the paper's scheme, unfolded
+def _paper_rollout(system, q0, qdot0, ctl, h, n):
+    """The paper's RDP (alpha = 1/2, exp, dtau^-1 = I - ad/2) with the previous step's force kept
+    apart, ``F_k = a f_{k-1+a} + (1-a) f_{k+a}`` multiplied by the current ``h``: written here from
+    (21), (23) with a Newton solve, independently of the library's step."""
+    a = 0.5
+    r0, rdot0 = q0[3:], qdot0[3:]
+    xi0 = lj.systems.body_velocity(q0, qdot0)
+    pu0, mu0 = jax.grad(system.reduced_lagrangian, argnums=(1, 2))(r0, rdot0, xi0)
+    dyn = np.asarray(system.dynamic_index)
+    nd = dyn.size
+
+    def step(state, k):
+        q, pu, mu, f_prev = state
+        r = q[3:]
+        c0, c1 = ctl(k * h), ctl((k + 1) * h)
+        f0, uk0 = system.inputs(c0)
+        f1, uk1 = system.inputs(c1)
+        f_a = (1 - a) * f0 + a * f1
+        force = a * f_prev + (1 - a) * f_a
+        u_kin = 0.5 * (uk0 + uk1)
+
+        def unpack(z):
+            u = u_kin.at[dyn].set(z[:nd])
+            r_a = r + a * h * u
+            return u, system.symmetry_basis(r_a) @ z[nd:] - system.connection(r_a) @ u
+
+        def residual(z):
+            u, xi = unpack(z)
+            dl_du, dl_dxi = jax.grad(system.reduced_lagrangian, argnums=(1, 2))(r + a * h * u, u, xi)
+            jump = lie.dtau_inv(h * xi, "exp", 1).T @ dl_dxi - mu
+            hor = dl_du - pu - system.connection(r).T @ jump - h * force
+            return jnp.concatenate([hor[dyn], system.symmetry_basis(r).T @ jump])
+
+        z = jnp.zeros(nd + system.symmetry_basis(r).shape[1])
+        for _ in range(8):
+            z = z - jnp.linalg.solve(jax.jacfwd(residual)(z), residual(z))
+        u, xi = unpack(z)
+        dl_du, dl_dxi = jax.grad(system.reduced_lagrangian, argnums=(1, 2))(r + a * h * u, u, xi)
+        q_next = jnp.concatenate([lie.compose(q[:3], lie.exp(h * xi)), r + h * u])
+        mu_next = lie.dtau_inv(-h * xi, "exp", 1).T @ dl_dxi
+        # what the next step reads of the momenta: pu + h a f_{k+a} (its force term) with mu
+        seen = _reduced_momenta(system, q_next, dl_du + h * a * f_a, mu_next)
+        return (q_next, dl_du, mu_next, f_a), (q_next, seen)
+
+    state0 = (q0, pu0, mu0, jnp.zeros_like(pu0))
+    _, (q, p) = jax.lax.scan(step, state0, jnp.arange(n, dtype=q0.dtype))
+    return q, p
+
+
+@pytest.mark.parametrize("name", list(SYSTEMS))
+def test_folded_state_equals_paper_scheme_at_constant_step(name):
+    """Folding the force into the carried momentum changes nothing at a constant step: the
+    trajectories and the carried momenta (through what later steps read) agree to 1e-12 over
+    1000 steps, for the closed-form kernel and the general Newton step."""
+    system = SYSTEMS[name]
+    q0, qdot0, ctl = index(maneuvers(system, 1, seed=11), 0)
+    n, t_final = 1000, 10.0
+    h = t_final / n
+    q_ref, p_ref = jax.jit(lambda: _paper_rollout(system, q0, qdot0, ctl, h, n))()
+    for integrator in (lj.RDP(), lj.RDP(solver="newton")):
+
+        def ours(integrator=integrator):
+            state = integrator.init(system, h, q0, qdot0, None)
+            nodes = jnp.asarray(integrator.control_nodes)
+
+            def step(state, k):
+                state, _ = integrator.step(system, h, state, jax.vmap(ctl)(k * h + h * nodes))
+                q, pu, mu = integrator.momenta(system, state)
+                return state, (q, _reduced_momenta(system, q, pu, mu))
+
+            return jax.lax.scan(step, state, jnp.arange(n, dtype=q0.dtype))[1]
+
+        q, p = jax.jit(ours)()
+        assert float(jnp.max(jnp.abs(q - q_ref))) < 1e-12 * (1 + float(jnp.max(jnp.abs(q_ref))))
+        assert float(jnp.max(jnp.abs(p - p_ref))) < 1e-12 * (1 + float(jnp.max(jnp.abs(p_ref))))
+
+
+@pytest.mark.parametrize("name", list(SYSTEMS))
+@pytest.mark.parametrize("forced", [True, False])
+def test_step_then_negative_step_returns_to_start(name, forced):
+    """RDP at alpha = 1/2 is symmetric: a step with h, then one with -h (controls read at its own
+    two ends), returns to the start to 1e-13 (configuration and carried momenta), forced or not,
+    for both retractions and both the kernel and the Newton step."""
+    system = SYSTEMS[name]
+    q0, qdot0, ctl = index(maneuvers(system, 1, seed=12), 0)
+    if not forced:
+        ctl = lj.Sinusoids(jnp.zeros_like(ctl.amplitude), ctl.frequency, ctl.phase)
+    t = 0.7
+    for integrator in (lj.RDP(), lj.RDP(retraction="cayley"), lj.RDP(solver="newton")):
+        for h in (0.05, 0.3):
+            c = jnp.stack([ctl(t), ctl(t + h)])
+            state0 = integrator.init(system, h, q0, qdot0, c)
+            state1, _ = integrator.step(system, h, state0, c)
+            state2, _ = integrator.step(system, -h, state1, c[::-1])
+            qa, pa, ma = integrator.momenta(system, state0)
+            qb, pb, mb = integrator.momenta(system, state2)
+            q1 = integrator.momenta(system, state1)[0]
+            assert float(jnp.max(jnp.abs(q1 - qa))) > 1e-3  # it did move
+            assert float(jnp.max(jnp.abs(qb - qa))) < 1e-13
+            ra, rb = _reduced_momenta(system, qa, pa, ma), _reduced_momenta(system, qb, pb, mb)
+            assert float(jnp.max(jnp.abs(rb - ra))) < 1e-13 * (1 + float(jnp.max(jnp.abs(ra))))
+
+
+def _terminal_errors(system, integrator, batch, t_final, ns):
+    q0, qdot0, ctl = batch
+    ref = jax.vmap(lambda a, b, c: lj.reference(system, a, b, c, jnp.array([t_final])).q[-1])(q0, qdot0, ctl)
+    errs = []
+    for n in ns:
+        q = jax.vmap(
+            lambda a, b, c, n=n: lj.simulate(
+                system, a, b, c, t_final=t_final, n_steps=n, integrator=integrator, save="final", diagnostics=False
+            ).q[-1]
+        )(q0, qdot0, ctl)
+        errs.append(float(jnp.max(jnp.linalg.norm(q[:, :3] - ref[:, :3], axis=-1))))
+    return errs
+
+
+ORDER_CASES = [
+    (name, order, retraction)
+    for name in SYSTEMS
+    for order, retraction in ((4, "exp"), (4, "cayley"), (6, "exp"), (6, "cayley"))
+]
+
+
+@pytest.mark.parametrize("name,order,retraction", ORDER_CASES)
+def test_composition_orders(name, order, retraction):
+    """Observed orders 4.0 +- 0.3 and 6.0 +- 0.5 against lj.reference on random maneuvers."""
+    system = SYSTEMS[name]
+    batch = maneuvers(system, 3, seed=13)
+    integrator = lj.RDP(order=order, retraction=retraction)
+    ns = (16, 32, 64) if order == 4 else (8, 16, 32)
+    errs = _terminal_errors(system, integrator, batch, 2.0, ns)
+    p = fitted_order([2.0 / n for n in ns], errs)
+    print(name, order, retraction, errs, p)
+    assert abs(p - order) < (0.3 if order == 4 else 0.5), (errs, p)
+    assert errs[-1] > 1e-13  # above round-off, so the slope is the scheme's
+
+
+def test_triple_jump_and_mclachlan_reach_order_4_on_smooth_controls():
+    system = SYSTEMS["snakeboard"]
+    batch = maneuvers(system, 2, seed=14)
+    for scheme in ("triple_jump", "mclachlan5"):
+        errs = _terminal_errors(system, lj.RDP(order=4, scheme=scheme), batch, 2.0, (16, 32, 64))
+        assert abs(fitted_order([1 / 8, 1 / 16, 1 / 32], errs) - 4) < 0.3, (scheme, errs)
+
+
+def test_substeps_satisfy_the_discrete_equations():
+    """Every substep of a composition is an RDP step: (21) and (23), rebuilt from the substep
+    configurations with each substep's own (possibly negative) h, hold to round-off, and the
+    constraints hold at every node."""
+    sb = SYSTEMS["snakeboard"]
+    q0, qdot0, ctl = index(maneuvers(sb, 1, seed=15), 0)
+    weights = SCHEMES["kahan_li9"][1]
+    h, n_macro = 0.2, 20
+    base = lj.RDP()
+    hs = np.tile(np.asarray(weights) * h, n_macro)
+    ts = np.concatenate([[0.0], np.cumsum(hs)])
+
+    def run():
+        state = base.init(sb, h, q0, qdot0, None)
+
+        def step(state, x):
+            hi, ti = x
+            state, info = base.step(sb, hi, state, jnp.stack([ctl(ti), ctl(ti + hi)]))
+            return state, base.momenta(sb, state)[0]
+
+        return jax.lax.scan(step, state, (jnp.asarray(hs), jnp.asarray(ts[:-1])))[1]
+
+    q = jnp.concatenate([q0[None], jax.jit(run)()])
+    hs_ = jnp.asarray(hs)
+    rel = jax.vmap(lambda g0, g1: lie.compose(lie.inverse(g0), g1))(q[:-1, :3], q[1:, :3])
+    xi = jax.vmap(lie.log)(rel) / hs_[:, None]
+    u = (q[1:, 3:] - q[:-1, 3:]) / hs_[:, None]
+    r_a = q[:-1, 3:] + 0.5 * hs_[:, None] * u
+    dl_du, mu = jax.vmap(jax.grad(sb.reduced_lagrangian, argnums=(1, 2)))(r_a, u, xi)
+    out = jax.vmap(lambda v, m: lie.dtau_inv(v, "exp", 1).T @ m)(hs_[:, None] * xi, mu)
+    inc = jax.vmap(lambda v, m: lie.dtau_inv(-v, "exp", 1).T @ m)(hs_[:, None] * xi, mu)
+    jump = out[1:] - inc[:-1]
+    e = jax.vmap(sb.e1)(q[1:-1, 4])
+    vertical = jnp.sum(jump * e, axis=1)
+    f = jax.vmap(ctl)(jnp.asarray(ts))
+    f_a = 0.5 * (f[:-1] + f[1:])
+    # horizontal (23) for the rotor, d_r l = 0: I (u + xi1) jumps by h_{k-1}/2 f_{k-1+a} + h_k/2 f_{k+a}
+    a_k = jax.vmap(sb.connection)(q[1:-1, 3:])
+    horizontal = (
+        dl_du[1:, 0]
+        - dl_du[:-1, 0]
+        - 0.5 * (hs_[:-1] * f_a[:-1, 0] + hs_[1:] * f_a[1:, 0])
+        - jnp.einsum("ki,ki->k", a_k[:, :, 0], jump)
+    )
+    scale = float(jnp.max(jnp.abs(mu)))
+    assert np.any(hs < 0)
+    assert float(jnp.max(jnp.abs(vertical))) < 1e-13 * scale / h
+    assert float(jnp.max(jnp.abs(horizontal))) < 1e-13 * scale / h
+    traj = lj.simulate(sb, q0, qdot0, ctl, t_final=h * n_macro, n_steps=n_macro, integrator=lj.RDP(order=6))
+    np.testing.assert_allclose(traj.q, q[:: len(weights)], atol=1e-13)
+    assert float(jnp.max(traj.constraint_residual)) < 1e-14 * float(jnp.max(jnp.abs(traj.qdot)))
+    assert float(jnp.max(traj.step_residual)) < 1e-14
+
+
+@pytest.mark.parametrize("name", list(SYSTEMS))
+def test_node_velocities_from_momenta(name):
+    """Trajectory.qdot is read from the carried momenta: at order 2 it is second-order accurate
+    against the reference velocity, and the energy balance E - E0 - W converges at order 2."""
+    system = SYSTEMS[name]
+    q0, qdot0, ctl = index(maneuvers(system, 1, seed=16), 0)
+    errs = []
+    for n in (100, 200, 400):
+        traj = lj.simulate(system, q0, qdot0, ctl, t_final=4.0, n_steps=n, save=n // 4)
+        ref = lj.reference(system, q0, qdot0, ctl, traj.t)
+        errs.append(float(jnp.max(jnp.abs(traj.qdot - ref.qdot))))
+    assert abs(fitted_order([1, 0.5, 0.25], errs) - 2) < 0.15, errs
+
+
+@pytest.mark.parametrize("name", list(SYSTEMS))
+def test_energy_bounded_for_every_order(name):
+    """10^5 unforced steps (free rolling, no steering: the energy is conserved exactly): the
+    energy error with velocities from the momenta stays bounded (no linear drift) at every
+    order, and far below what differenced velocities gave."""
+    system = SYSTEMS[name]
+    if name == "car":
+        q0 = jnp.array([0.0, 0.0, 0.1, 0.0, 0.4])
+        qdot0 = system.qdot_from_velocities(q0, jnp.array([3.0]), jnp.zeros(2))
+    else:
+        q0 = jnp.array([0.0, 0.0, 0.3, 0.0, 0.5])
+        qdot0 = system.qdot_from_velocities(q0, jnp.array([1.0, 0.0, 0.4]), jnp.zeros(2))
+    for order in (2, 4, 6):
+        traj = lj.simulate(
+            system, q0, qdot0, None, t_final=5000.0, n_steps=100_000, integrator=lj.RDP(order=order), save=100
+        )
+        err = np.abs(np.asarray(traj.energy - traj.energy[0]))
+        first, second = err[: err.size // 2].max(), err[err.size // 2 :].max()
+        print(name, order, first, second)
+        assert not bool(traj.failed)
+        assert second < 1.5 * first + 1e-13, (first, second)
+        assert err.max() < 1e-6 * float(traj.energy[0])
+
+
+def test_gradient_through_order_6_matches_central_differences():
+    sb = SYSTEMS["snakeboard"]
+    q0, qdot0, ctl = index(maneuvers(sb, 1, seed=17), 0)
+
+    @jax.jit
+    def loss(amplitude):
+        c = lj.Sinusoids(amplitude, ctl.frequency, ctl.phase)
+        q = lj.simulate(sb, q0, qdot0, c, t_final=3.0, n_steps=30, integrator=lj.RDP(order=6), save="final").q
+        return jnp.sum((q[-1, :3] - jnp.array([0.5, -0.3, 1.0])) ** 2)
+
+    x = ctl.amplitude
+    grad = np.asarray(jax.grad(loss)(x)).ravel()
+    eps = 1e-6
+    fd = []
+    for i in range(x.size):
+        e = jnp.zeros(x.size).at[i].set(eps).reshape(x.shape)
+        fd.append((float(loss(x + e)) - float(loss(x - e))) / (2 * eps))
+    np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-5 * np.abs(fd).max())
+
+
+def test_vmap_equals_loop_and_float32_keeps_float32():
+    sb = SYSTEMS["snakeboard"]
+    batch = maneuvers(sb, 4, seed=18)
+    run = jax.jit(lambda a, b, c: lj.simulate(sb, a, b, c, t_final=2.0, n_steps=20, integrator=lj.RDP(order=6)).q)
+    batched = jax.vmap(run)(*batch)
+    for i in range(4):
+        np.testing.assert_allclose(batched[i], run(*index(batch, i)), rtol=1e-13, atol=1e-13)
+    q0, qdot0, ctl = jax.tree_util.tree_map(lambda x: x.astype(jnp.float32), index(batch, 0))
+    traj = lj.simulate(sb, q0, qdot0, ctl, t_final=2.0, n_steps=20, integrator=lj.RDP(order=6))
+    assert traj.q.dtype == jnp.float32 and traj.qdot.dtype == jnp.float32 and traj.energy.dtype == jnp.float32
+    np.testing.assert_allclose(traj.q, batched[0], atol=1e-4)
+
+
+def test_bad_order_settings_name_the_argument():
+    with pytest.raises(ValueError, match="'order'"):
+        lj.RDP(order=3)
+    with pytest.raises(ValueError, match="'order'"):
+        lj.RDP(order=4, alpha=0.0)
+    with pytest.raises(ValueError, match="'scheme'"):
+        lj.RDP(order=4, scheme="nonexistent")
+    with pytest.raises(ValueError, match="'scheme'"):
+        lj.RDP(order=4, scheme="kahan_li9")
+    with pytest.raises(ValueError, match="'scheme'"):
+        lj.RDP(scheme="suzuki5")
+    assert lj.RDP().order == 2 and lj.RDP(alpha=0.0).order == 1
+    assert lj.RDP(order=4).order == 4 and lj.RDP(order=6).scheme == "kahan_li9"
+    assert lj.RDP(order=6).control_nodes[0] == 0.0 and lj.RDP(order=6).control_nodes[-1] == 1.0
