@@ -137,6 +137,11 @@ class DiscreteDynamics(eqx.Module):
         u = jnp.asarray(u, x.dtype)
         return self.integrator.observe(self.system, self.unpack(x, u), u)
 
+    def node(self, x: Float[Array, " n"], u: ArrayLike) -> tuple[Array, Array]:
+        """``(q, qdot)`` held by ``x`` (no diagnostics: the light path for costs and constraints)."""
+        u = jnp.asarray(u, x.dtype)
+        return self.integrator.node(self.system, self.unpack(x, u), u)
+
     def rollout(self, x0: Float[Array, " n"], us: Float[Array, "K n_controls"]) -> Float[Array, "K n"]:
         """States at nodes ``0 .. K-1`` from ``x0`` and the control values ``us`` at the nodes
         (one ``lax.scan``)."""

@@ -4,8 +4,7 @@ A term is a small module with a per-node part and a terminal part,
 
     J = sum_{k=0}^{N} term.stage(system, obs_k, c_k, h) + term.terminal(system, obs_N, q_0),
 
-where ``obs_k`` is the :class:`~ldap_jax.systems.Observation` of node ``k`` (configuration,
-velocity, ...), ``c_k`` the physical control values at ``t_k`` and ``h`` the step. A task's cost
+where ``obs_k`` is the :class:`Node` ``k`` (its configuration ``q`` and velocity ``qdot``), ``c_k`` the physical control values at ``t_k`` and ``h`` the step. A task's cost
 is a tuple of terms (summed, each reported on its own), the way optax chains transformations;
 the same terms score a trajectory of the optimizer's model, the interior-point solver's stage
 costs and a replay on the high-accuracy reference.
@@ -13,7 +12,7 @@ costs and a replay on the high-accuracy reference.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
@@ -30,6 +29,7 @@ __all__ = [
     "TerminalRest",
     "BoundPenalty",
     "evaluate_terms",
+    "Node",
     "pose_error",
     "effort_cost",
     "bound_penalty",
@@ -71,6 +71,13 @@ def bound_penalty(x: ArrayLike, lower: ArrayLike, upper: ArrayLike) -> Array:
     """
     x = jnp.asarray(x)
     return jnp.sum(jnp.maximum(x - upper, 0.0) ** 2 + jnp.maximum(lower - x, 0.0) ** 2)
+
+
+class Node(NamedTuple):
+    """What a term reads of a node: configuration ``q`` and velocity ``qdot``."""
+
+    q: Array
+    qdot: Array
 
 
 class AbstractTerm(eqx.Module):

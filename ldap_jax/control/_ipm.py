@@ -1,26 +1,30 @@
 """A primal-dual interior-point method for discrete optimal control, jitted end to end.
 
-The problem (built from a :class:`~ldap_jax.control.Task` by :mod:`._problem`), with the node
+The problem (built from a :class:`~ldap_jax.control.Task` by :mod:`._solve`), with the node
 controls carried in an augmented state so that the dynamics ``x_{k+1} = f(x_k, u_k, u_{k+1})``
-take the stage form of optimal control: ``chi_j = (x_{j-1}, u_{j-1})``, control ``v_j = u_j``,
+take the stage form of optimal control: ``chi_j = (x_{j-1}, u_{j-1})``, control ``v_j = u_j``::
 
     min   sum_{j=1}^{K} l(chi_j) + l_K(chi_K)
-    s.t.  chi_{j+1} = F_j(chi_j, v_j)  (j = 0 .. K-1, chi_0 fixed),   c(chi_K) = 0,
+    s.t.  chi_{j+1} = F_j(chi_j, v_j)  (j = 0 .. K-1, chi_1 = (x_0, v_0)),   c(chi_K) = 0,
           lo <= chi_j <= hi  (j = 1 .. K),
 
 ``K = N + 1``. Multiple shooting: every ``chi_j`` and ``v_j`` is a variable and the dynamics are
 equality constraints, so the dynamics and their derivatives are evaluated for all stages at once
 (``vmap``), and only the Riccati recursion of :mod:`._riccati` is sequential.
 
-One iteration (Wachter and Biegler's IPOPT, simplified): the Newton step of the barrier problem
-``min f - mu sum log(slacks)`` with the exact Hessian of the Lagrangian (second derivatives of
-the integrator's step by automatic differentiation) plus the barrier's ``Sigma = zeta / slack``,
-solved by the Riccati recursion; if its reduced Hessian is not positive definite, ``delta_w I``
-is added and the solve repeated (inertia correction); the fraction-to-the-boundary rule keeps
-the iterates strictly inside the bounds; a backtracking line search on the exact l1 merit
-function ``f_mu + rho |constraints|_1`` globalises; ``mu`` decreases superlinearly
-(``mu <- min(0.2 mu, mu^1.5)``) once the barrier problem is solved to ``10 mu``. It stops when the
-scaled KKT error (dual infeasibility, constraint violation, complementarity) is below ``tol``.
+One iteration follows Wachter and Biegler's IPOPT (Math. Program. 106, 2006), simplified:
+
+* the Newton step of the barrier problem ``min f - mu sum log(slacks)``, solved by the Riccati
+  recursion, with the Hessian of the Lagrangian: Gauss-Newton (the objective's and the barrier's
+  curvature) while the constraint violation exceeds ``exact_hessian_tol``, then exact (the
+  integrator step's second derivatives by automatic differentiation), for fast local
+  convergence; if its reduced Hessian is not positive definite, ``delta_w I`` is added and the
+  solve repeated (inertia correction);
+* the fraction-to-the-boundary rule keeps the iterates strictly inside the bounds;
+* a backtracking line search with IPOPT's filter (constraint violation ``theta``, barrier
+  objective ``phi``) globalises;
+* ``mu`` decreases superlinearly (``mu <- min(0.2 mu, mu^1.5)``) once the barrier problem is solved
+  to ``10 mu``; the method stops when the scaled KKT error is below ``tol``.
 """
 
 from __future__ import annotations
@@ -33,7 +37,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
-from ._riccati import QP, riccati_solve
+from ._riccati import riccati_apply, riccati_factor
 
 __all__ = ["SOLVER_RESULTS", "IPMOptions", "IPMState", "ipm_solve", "OCPFunctions"]
 
@@ -44,8 +48,9 @@ class SOLVER_RESULTS(eqx.Enumeration):
     successful = ""
     max_iterations = "the iteration budget ran out before the KKT error met the tolerance"
     line_search_failed = (
-        "the line search found no acceptable step (the problem may be infeasible from this guess, "
-        "or badly scaled); try another initial guess"
+        "the line search found no acceptable step: the problem may be infeasible from this guess "
+        "(e.g. a goal the controls cannot reach within the bounds), or too far from a solution for "
+        "its linearisation; try another initial guess (a gait that already moves the system)"
     )
     nonfinite = "non-finite values in the iterates (an integrator failure along the trajectory?)"
     regularization_failed = "the Hessian could not be regularised to the right inertia"
@@ -55,7 +60,7 @@ class OCPFunctions(NamedTuple):
     """The problem in stage form: callables of one stage (vmapped by the solver)."""
 
     dynamics: Callable[[Array, Array], Array]  # (chi, v) -> next chi, for stages j >= 1
-    first: Callable[[Array], Array]  # v_0 -> chi_1
+    first: Callable[[Array], Array]  # v_0 -> chi_1 (affine)
     stage_cost: Callable[[Array], Array]  # chi -> scalar (stages 1..K)
     terminal_cost: Callable[[Array], Array]  # chi_K -> scalar (added to the stage cost of K)
     terminal: Callable[[Array], Array]  # chi_K -> (p,) equality residuals
@@ -72,8 +77,7 @@ class IPMOptions(NamedTuple):
     rho_c: float = 1e4
     exact_hessian_tol: float = 1e-2
     filter_size: int = 64
-    penalty_tol: float = float("inf")
-    rho_t: float = 100.0
+    hessian: str = "exact"
     verbose: bool = False
 
 
@@ -88,97 +92,131 @@ class IPMState(NamedTuple):
     theta_max: Float[Array, ""]
     filter: Float[Array, "F 2"]  # (theta, phi) pairs of the filter; +inf = empty slot
     delta_w: Float[Array, ""]
+    curvature: Float[Array, "K1 nm nm"]  # SR1 approximations of the dynamics' curvature y^T F''
+    curvature_K: Float[Array, "n n"]  # ... and of the terminal constraints' nu^T c''
+    previous: tuple[Array, Array, Array, Array]  # (chi, v, Z, CK) of the previous iterate
     iteration: Int[Array, ""]
     error: Float[Array, ""]
+    violation: Float[Array, ""]  # largest constraint violation (max norm) at chi, v
     result: SOLVER_RESULTS
 
 
-def _lag_stage(fns: OCPFunctions, chi, v, y):
-    return fns.stage_cost(chi) + y @ fns.dynamics(chi, v)
+class _Derivatives(NamedTuple):
+    defects: Array  # (K, n): F_j - chi_{j+1}
+    Z: Array  # (K, n, n + m): [A_j, B_j] (stage 0: [0, B_0])
+    W: Array  # (K, n + m, n + m): Hessian of the stage Lagrangian (stage 0: 0)
+    g: Array  # (K, n): gradient of the objective w.r.t. chi_1..chi_K
+    cK: Array  # (p,)
+    CK: Array  # (p, n)
+    QK: Array  # (n, n): Hessian of l_K + nu^T c (objective part of stage K included)
 
 
-def _derivatives(fns: OCPFunctions, st: IPMState, kappa: Array):
-    """Residuals, Jacobians and Hessian blocks of every stage."""
-    chi, v, y = st.chi, st.v, st.y
-    # stage 0: chi_1 = first(v_0) (linear in v_0 by construction)
-    F0 = fns.first(v[0])
-    B0 = jax.jacfwd(fns.first)(v[0])
-    # stages 1 .. K-1: chi_{j+1} = dynamics(chi_j, v_j)
-    chi_in, v_in, y_in = chi[:-1], v[1:], y[1:]
-    F = jax.vmap(fns.dynamics)(chi_in, v_in)
-    A, B = jax.vmap(jax.jacfwd(fns.dynamics, argnums=(0, 1)))(chi_in, v_in)
-    n, m = chi.shape[1], v.shape[1]
-
-    def hess(c, vv, yy):
-        w = jnp.concatenate([c, vv])
-        return jax.hessian(lambda w: _lag_stage(fns, w[:n], w[n:], yy))(w)
-
-    H = jax.vmap(hess)(chi_in, v_in, kappa * y_in)
-    g_chi = jax.vmap(jax.grad(fns.stage_cost))(chi_in)
-    # terminal stage K
-    chiK = chi[-1]
-    term = lambda c: fns.stage_cost(c) + fns.terminal_cost(c)  # noqa: E731
-    cK = fns.terminal(chiK)
-    CK = jax.jacfwd(fns.terminal)(chiK)
-    QK = jax.hessian(lambda c: term(c) + kappa * st.nu @ fns.terminal(c))(chiK)
-    qK = jax.grad(term)(chiK)
-    defects = jnp.concatenate([(F0 - chi[0])[None], F - chi[1:]])
-    return dict(F0=F0, B0=B0, A=A, B=B, H=H, g=g_chi, cK=cK, CK=CK, QK=QK, qK=qK, defects=defects, n=n, m=m)
-
-
-def _objective(fns, chi):
-    return jnp.sum(jax.vmap(fns.stage_cost)(chi)) + fns.terminal_cost(chi[-1])
-
-
-def _constraints(fns, chi, v):
+def _constraints(fns: OCPFunctions, chi: Array, v: Array) -> tuple[Array, Array]:
     d0 = fns.first(v[0]) - chi[0]
     d = jax.vmap(fns.dynamics)(chi[:-1], v[1:]) - chi[1:]
     return jnp.concatenate([d0[None], d]), fns.terminal(chi[-1])
 
 
-def _barrier(chi, lo, hi, mu):
-    sl = jnp.where(jnp.isfinite(lo), chi - lo, 1.0)
-    su = jnp.where(jnp.isfinite(hi), hi - chi, 1.0)
-    return -mu * (jnp.sum(jnp.log(sl)) + jnp.sum(jnp.log(su)))
+def _objective(fns: OCPFunctions, chi: Array) -> Array:
+    return jnp.sum(jax.vmap(fns.stage_cost)(chi)) + fns.terminal_cost(chi[-1])
+
+
+def _derivatives(fns: OCPFunctions, st: IPMState, exact: Array, sr1: bool) -> _Derivatives:
+    chi, v, y = st.chi, st.v, st.y
+    K, n = chi.shape
+    m = v.shape[1]
+    dtype = chi.dtype
+
+    def dyn_aux(c, vv):
+        f = fns.dynamics(c, vv)
+        return f, f
+
+    (A, B), F = jax.vmap(jax.jacfwd(dyn_aux, argnums=(0, 1), has_aux=True))(chi[:-1], v[1:])
+    B0 = jax.jacfwd(fns.first)(v[0])
+    defects = jnp.concatenate([(fns.first(v[0]) - chi[0])[None], F - chi[1:]])
+    Z = jnp.concatenate(
+        [jnp.concatenate([jnp.zeros((1, n, n), dtype), B0[None]], axis=2), jnp.concatenate([A, B], axis=2)]
+    )
+    g = jax.vmap(jax.grad(fns.stage_cost))(chi)
+    H_cost = jax.vmap(jax.hessian(fns.stage_cost))(chi[:-1])
+
+    def curvature(_):  # the dynamics' second derivatives, weighted by the multipliers
+        def one(c, vv, yy):
+            return jax.hessian(lambda w: yy @ fns.dynamics(w[:n], w[n:]))(jnp.concatenate([c, vv]))
+
+        return jax.vmap(one)(chi[:-1], v[1:], y[1:])
+
+    if sr1:  # the curvature comes from the SR1 approximations (added by the caller)
+        H_dyn = jnp.zeros((K - 1, n + m, n + m), dtype)
+    else:
+        H_dyn = jax.lax.cond(exact, curvature, lambda _: jnp.zeros((K - 1, n + m, n + m), dtype), None)
+    W = H_dyn.at[:, :n, :n].add(H_cost)
+    W = jnp.concatenate([jnp.zeros((1, n + m, n + m), dtype), W])
+    chiK = chi[-1]
+    cK, CK = fns.terminal(chiK), jax.jacfwd(fns.terminal)(chiK)
+
+    def lagrangian_K(c, weight):
+        return fns.stage_cost(c) + fns.terminal_cost(c) + weight * st.nu @ fns.terminal(c)
+
+    if sr1:
+        QK = jax.hessian(lagrangian_K)(chiK, jnp.zeros((), dtype))
+    else:
+        QK = jax.hessian(lagrangian_K)(chiK, exact.astype(dtype))
+    g = g.at[-1].add(jax.grad(fns.terminal_cost)(chiK))
+    return _Derivatives(defects=defects, Z=Z, W=W, g=g, cK=cK, CK=CK, QK=QK)
+
+
+def _sr1(B: Array, s: Array, r_grad: Array) -> Array:
+    """Symmetric rank-one update of ``B`` with step ``s`` and gradient change ``r_grad``
+    (skipped when the denominator is tiny, as usual)."""
+    r = r_grad - B @ s
+    den = r @ s
+    ok = jnp.abs(den) > 1e-8 * jnp.linalg.norm(r) * jnp.linalg.norm(s) + 1e-300
+    return jnp.where(ok, B + jnp.outer(r, r) / jnp.where(ok, den, 1.0), B)
+
+
+def _kkt_parts(st: IPMState, d: _Derivatives, lo: Array, hi: Array):
+    """Dual infeasibility, constraint violation (max norms), slacks and scaling of the KKT error."""
+    n = st.chi.shape[1]
+    A = d.Z[:, :, :n]
+    B = d.Z[:, :, n:]
+    AT_y = jnp.einsum("jab,ja->jb", A[1:], st.y[1:])
+    gc = d.g + jnp.concatenate([AT_y, jnp.zeros((1, n), d.g.dtype)]) - st.y
+    gc = gc.at[-1].add(d.CK.T @ st.nu) - st.zl + st.zu
+    gv = jnp.einsum("jab,ja->jb", B, st.y)
+    dual = jnp.maximum(jnp.max(jnp.abs(gc)), jnp.max(jnp.abs(gv)))
+    primal = jnp.maximum(jnp.max(jnp.abs(d.defects)), jnp.max(jnp.abs(d.cK), initial=0.0))
+    sl = jnp.where(jnp.isfinite(lo), st.chi - lo, 0.0)
+    su = jnp.where(jnp.isfinite(hi), hi - st.chi, 0.0)
+    n_mult = st.y.size + st.nu.size + st.zl.size
+    s_d = jnp.maximum(1.0, (jnp.sum(jnp.abs(st.y)) + jnp.sum(jnp.abs(st.nu)) + jnp.sum(st.zl + st.zu)) / (100.0 * n_mult))
+    s_c = jnp.maximum(1.0, jnp.sum(st.zl + st.zu) / (100.0 * st.zl.size))
+    return dual / s_d, primal, sl, su, s_c
+
+
+def _kkt_error(parts, st: IPMState, lo: Array, hi: Array, mu: Array) -> Array:
+    """IPOPT's E_mu: the largest of the scaled dual infeasibility, the constraint violation and
+    the scaled deviation from the barrier's complementarity ``s zeta = mu``."""
+    dual, primal, sl, su, s_c = parts
+    comp = jnp.maximum(
+        jnp.max(jnp.abs(sl * st.zl - jnp.where(jnp.isfinite(lo), mu, 0.0))),
+        jnp.max(jnp.abs(su * st.zu - jnp.where(jnp.isfinite(hi), mu, 0.0))),
+    )
+    return jnp.maximum(jnp.maximum(dual, primal), comp / s_c)
 
 
 def _fraction_to_boundary(x, dx, lo, hi, tau):
-    """Largest alpha in (0, 1] with x + alpha dx >= lo + (1 - tau)(x - lo) (and for hi)."""
-    big = jnp.asarray(1.0, x.dtype)
-    al = jnp.where(jnp.isfinite(lo) & (dx < 0), -tau * (x - lo) / jnp.where(dx < 0, dx, -1.0), big)
-    au = jnp.where(jnp.isfinite(hi) & (dx > 0), tau * (hi - x) / jnp.where(dx > 0, dx, 1.0), big)
+    """Largest alpha in (0, 1] with ``x + alpha dx >= lo + (1 - tau)(x - lo)`` (and for ``hi``)."""
+    al = jnp.where(jnp.isfinite(lo) & (dx < 0), -tau * (x - lo) / jnp.where(dx < 0, dx, -1.0), 1.0)
+    au = jnp.where(jnp.isfinite(hi) & (dx > 0), tau * (hi - x) / jnp.where(dx > 0, dx, 1.0), 1.0)
     return jnp.minimum(1.0, jnp.minimum(jnp.min(al), jnp.min(au)))
 
 
 def _multiplier_step(z, dz, tau):
-    a = jnp.where(dz < 0, -tau * z / jnp.where(dz < 0, dz, -1.0), 1.0)
-    return jnp.minimum(1.0, jnp.min(a))
+    return jnp.minimum(1.0, jnp.min(jnp.where(dz < 0, -tau * z / jnp.where(dz < 0, dz, -1.0), 1.0)))
 
 
-def _kkt_error(fns, st: IPMState, d, lo, hi, mu):
-    """Scaled dual infeasibility, constraint violation and complementarity (IPOPT's E_mu)."""
-    chi, y = st.chi, st.y
-    # gradient of the Lagrangian w.r.t. chi_j (j = 1..K) and v_j (j = 0..K-1)
-    g = jnp.concatenate([d["g"], (d["qK"])[None]])
-    AT_y = jnp.concatenate([jnp.einsum("jab,ja->jb", d["A"], y[1:]), jnp.zeros((1, chi.shape[1]), chi.dtype)])
-    gc = g + AT_y - y
-    gc = gc.at[-1].add(d["CK"].T @ st.nu) - st.zl + st.zu
-    gv = jnp.concatenate([(d["B0"].T @ y[0])[None], jnp.einsum("jab,ja->jb", d["B"], y[1:])])
-    dual = jnp.maximum(jnp.max(jnp.abs(gc)), jnp.max(jnp.abs(gv)))
-    primal = jnp.maximum(jnp.max(jnp.abs(d["defects"])), jnp.max(jnp.abs(d["cK"]), initial=0.0))
-    sl = jnp.where(jnp.isfinite(lo), chi - lo, 0.0)
-    su = jnp.where(jnp.isfinite(hi), hi - chi, 0.0)
-    comp = jnp.maximum(jnp.max(jnp.abs(sl * st.zl - jnp.where(jnp.isfinite(lo), mu, 0.0))),
-                       jnp.max(jnp.abs(su * st.zu - jnp.where(jnp.isfinite(hi), mu, 0.0))))
-    n_mult = y.size + st.nu.size + st.zl.size
-    s_d = jnp.maximum(1.0, (jnp.sum(jnp.abs(y)) + jnp.sum(jnp.abs(st.nu)) + jnp.sum(st.zl + st.zu)) / (100.0 * n_mult))
-    s_c = jnp.maximum(1.0, jnp.sum(st.zl + st.zu) / (100.0 * st.zl.size))
-    return jnp.maximum(jnp.maximum(dual / s_d, primal), comp / s_c), primal
-
-
-def ipm_solve(
-    fns: OCPFunctions, chi: Array, v: Array, lo: Array, hi: Array, options: IPMOptions
-) -> IPMState:
+def ipm_solve(fns: OCPFunctions, chi: Array, v: Array, lo: Array, hi: Array, options: IPMOptions) -> IPMState:
     """Run the interior-point method from the primal guess ``(chi, v)``; ``lo``/``hi`` (n,) bound
     every ``chi_j`` (infinite entries: no bound)."""
     dtype = chi.dtype
@@ -187,167 +225,145 @@ def ipm_solve(
     p = jax.eval_shape(fns.terminal, chi[-1]).shape[0]
     lo = jnp.broadcast_to(lo, chi.shape)
     hi = jnp.broadcast_to(hi, chi.shape)
+    has_lo, has_hi = jnp.isfinite(lo), jnp.isfinite(hi)
     # push the guess strictly inside the bounds (IPOPT's bound_push)
     push = options.bound_push
-    width = jnp.where(jnp.isfinite(lo) & jnp.isfinite(hi), hi - lo, jnp.inf)
-    pl = jnp.minimum(push * jnp.maximum(1.0, jnp.abs(lo)), 0.5 * push * width)
-    pu = jnp.minimum(push * jnp.maximum(1.0, jnp.abs(hi)), 0.5 * push * width)
-    chi = jnp.where(jnp.isfinite(lo), jnp.maximum(chi, lo + pl), chi)
-    chi = jnp.where(jnp.isfinite(hi), jnp.minimum(chi, hi - pu), chi)
+    width = jnp.where(has_lo & has_hi, hi - lo, jnp.inf)
+    chi = jnp.where(has_lo, jnp.maximum(chi, lo + jnp.minimum(push * jnp.maximum(1.0, jnp.abs(lo)), 0.5 * push * width)), chi)
+    chi = jnp.where(has_hi, jnp.minimum(chi, hi - jnp.minimum(push * jnp.maximum(1.0, jnp.abs(hi)), 0.5 * push * width)), chi)
     mu0 = jnp.asarray(options.mu0, dtype)
-    zl = jnp.where(jnp.isfinite(lo), mu0 / jnp.where(jnp.isfinite(lo), chi - lo, 1.0), 0.0)
-    zu = jnp.where(jnp.isfinite(hi), mu0 / jnp.where(jnp.isfinite(hi), hi - chi, 1.0), 0.0)
     zero = jnp.zeros((), dtype)
+
+    def slacks(c):
+        return jnp.where(has_lo, c - lo, 1.0), jnp.where(has_hi, hi - c, 1.0)
+
+    sl0, su0 = slacks(chi)
     st = IPMState(
         chi=chi,
         v=v,
         y=jnp.zeros((K, n), dtype),
         nu=jnp.zeros((p,), dtype),
-        zl=zl,
-        zu=zu,
+        zl=jnp.where(has_lo, mu0 / sl0, 0.0),
+        zu=jnp.where(has_hi, mu0 / su0, 0.0),
         mu=mu0,
         theta_max=jnp.asarray(jnp.inf, dtype),
         filter=jnp.full((options.filter_size, 2), jnp.inf, dtype),
         delta_w=zero,
+        curvature=jnp.zeros((K - 1, n + m, n + m), dtype),
+        curvature_K=jnp.zeros((n, n), dtype),
+        previous=(chi, v, jnp.zeros((K, n, n + m), dtype), jnp.zeros((p, n), dtype)),
         iteration=jnp.zeros((), jnp.int32),
         error=jnp.asarray(jnp.inf, dtype),
+        violation=jnp.asarray(jnp.inf, dtype),
         result=SOLVER_RESULTS.max_iterations,
     )
     tol = jnp.asarray(options.tol, dtype)
-    eye_n = jnp.eye(n, dtype=dtype)
+    eye_n, eye_m = jnp.eye(n, dtype=dtype), jnp.eye(m, dtype=dtype)
 
-    def theta_phi(chi, v, mu):
-        """Constraint violation (l1) and barrier objective at a trial point."""
-        defects, cK = _constraints(fns, chi, v)
-        theta = jnp.sum(jnp.abs(defects)) + jnp.sum(jnp.abs(cK))
-        return theta, _objective(fns, chi) + _barrier(chi, lo, hi, mu)
+    def barrier_objective(c, mu):
+        sl, su = slacks(c)
+        return _objective(fns, c) - mu * (jnp.sum(jnp.where(has_lo, jnp.log(sl), 0.0)) + jnp.sum(jnp.where(has_hi, jnp.log(su), 0.0)))
 
-    def iteration(st: IPMState, d) -> IPMState:
-        mu = st.mu
+    def theta_phi(c, vv, mu):
+        defects, cK = _constraints(fns, c, vv)
+        return jnp.sum(jnp.abs(defects)) + jnp.sum(jnp.abs(cK)), barrier_objective(c, mu)
+
+    def step(st: IPMState, d: _Derivatives, parts) -> IPMState:
         # barrier update (possibly several times) once the barrier problem is solved to kappa mu
-        def mu_cond(c):
-            mu_, _ = c
-            e_mu, _ = _kkt_error(fns, st, d, lo, hi, mu_)
-            return (e_mu <= options.kappa_eps * mu_) & (mu_ > tol / 10)
+        def mu_cond(mu_):
+            return (_kkt_error(parts, st, lo, hi, mu_) <= options.kappa_eps * mu_) & (mu_ > tol / 10)
 
-        def mu_body(c):
-            mu_, k = c
-            return jnp.maximum(tol / 10, jnp.minimum(0.2 * mu_, mu_**1.5)), k + 1
+        mu = jax.lax.while_loop(mu_cond, lambda mu_: jnp.maximum(tol / 10, jnp.minimum(0.2 * mu_, mu_**1.5)), st.mu)
+        sl, su = slacks(st.chi)
+        sigma = jnp.where(has_lo, st.zl / sl, 0.0) + jnp.where(has_hi, st.zu / su, 0.0)
+        g = d.g + jnp.where(has_lo, -mu / sl, 0.0) + jnp.where(has_hi, mu / su, 0.0)
+        diag = jax.vmap(jnp.diag)(jnp.concatenate([jnp.zeros((1, n), dtype), sigma[:-1]]))
+        W0 = d.W.at[:, :n, :n].add(diag)
+        w = jnp.concatenate([jnp.concatenate([jnp.zeros((1, n), dtype), g[:-1]]), jnp.zeros((K, m), dtype)], axis=1)
+        # rho_c C^T C: free in the QP (C dx_K = -c holds exactly) but it curves the terminal
+        # directions, so that the stagewise positive-definiteness test is the inertia test
+        QK0 = d.QK + jnp.diag(sigma[-1]) + options.rho_c * d.CK.T @ d.CK
+        eye = jnp.zeros((K, n + m, n + m), dtype).at[:, :n, :n].set(eye_n).at[:, n:, n:].set(eye_m)
+        eye = eye.at[0, :n, :n].set(0.0)
 
-        mu, _ = jax.lax.while_loop(mu_cond, mu_body, (mu, jnp.zeros((), jnp.int32)))
-        sl = jnp.where(jnp.isfinite(lo), st.chi - lo, 1.0)
-        su = jnp.where(jnp.isfinite(hi), hi - st.chi, 1.0)
-        sigma = jnp.where(jnp.isfinite(lo), st.zl / sl, 0.0) + jnp.where(jnp.isfinite(hi), st.zu / su, 0.0)
-        grad_barrier = jnp.where(jnp.isfinite(lo), -mu / sl, 0.0) + jnp.where(jnp.isfinite(hi), mu / su, 0.0)
-        g = jnp.concatenate([d["g"], d["qK"][None]]) + grad_barrier
-        Hs = d["H"]
-        Qs = Hs[:, :n, :n]
-        Ss = Hs[:, n:, :n]
-        Rs = Hs[:, n:, n:]
-        # stage 0 has no state variable and a linear map; its rows are the first of the QP
-        zq = jnp.zeros((1, n, n), dtype)
-
-        def build(delta):
-            Q = jnp.concatenate([zq, Qs + jax.vmap(jnp.diag)(sigma[:-1]) + delta * eye_n])
-            S = jnp.concatenate([jnp.zeros((1, m, n), dtype), Ss])
-            R = jnp.concatenate([jnp.zeros((1, m, m), dtype), Rs]) + delta * jnp.eye(m, dtype=dtype)
-            q = jnp.concatenate([jnp.zeros((1, n), dtype), g[:-1]])
-            A = jnp.concatenate([zq, d["A"]])
-            B = jnp.concatenate([d["B0"][None], d["B"]])
-            # rho_c C^T C: free in the QP (C dx_K = -c holds exactly) but makes the terminal
-            # directions positively curved, so the stagewise test below is the right inertia test
-            QK = d["QK"] + jnp.diag(sigma[-1]) + delta * eye_n + options.rho_c * d["CK"].T @ d["CK"]
-            # far from the terminal constraint, a quadratic penalty instead of the equality
-            # (the step then trades the constraint against the objective and the bounds)
-            CK = jnp.where(penalty_mode, 0.0, d["CK"])
-            cK = jnp.where(penalty_mode, 0.0, d["cK"])
-            qK = g[-1] + jnp.where(penalty_mode, options.rho_t * d["CK"].T @ d["cK"], 0.0)
-            QK = QK + jnp.where(penalty_mode, options.rho_t * d["CK"].T @ d["CK"], 0.0)
-            return QP(Q=Q, S=S, R=R, q=q, r=jnp.zeros((K, m), dtype), A=A, B=B, e=d["defects"],
-                      QK=QK, qK=qK, C=CK, c=cK)
-
-        penalty_mode = jnp.max(jnp.abs(d["cK"]), initial=0.0) > options.penalty_tol
-        delta_c = jnp.where(jnp.max(jnp.abs(d["cK"]), initial=0.0) >= 0, 1e-10, 0.0).astype(dtype)
+        def factor_with(delta):
+            return riccati_factor(W0 + delta * eye, d.Z, QK0 + delta * eye_n, d.CK, jnp.asarray(1e-10, dtype))
 
         def reg_cond(c):
-            delta, sol, tries = c
-            return (~sol.positive | ~jnp.all(jnp.isfinite(sol.dx))) & (tries < 40)
+            _, f, tries = c
+            return (~f.positive | ~jnp.all(jnp.isfinite(f.CM_inv))) & (tries < 40)
 
         def reg_body(c):
             delta, _, tries = c
-            delta = jnp.where(delta == 0, jnp.maximum(1e-4, st.delta_w / 3), 8.0 * delta)
-            return delta, riccati_solve(build(delta), delta_c), tries + 1
+            delta = jnp.where(tries == 0, zero, jnp.where(delta == 0, jnp.maximum(1e-4, st.delta_w / 3), 8.0 * delta))
+            return delta, factor_with(delta), tries + 1
 
-        sol0 = riccati_solve(build(zero), delta_c)
-        delta, sol, tries = jax.lax.while_loop(reg_cond, reg_body, (zero, sol0, jnp.zeros((), jnp.int32)))
-        reg_ok = sol.positive & jnp.all(jnp.isfinite(sol.dx))
+        shapes = jax.eval_shape(factor_with, zero)
+        empty = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
+        delta, fac, _ = jax.lax.while_loop(reg_cond, reg_body, (zero, empty, jnp.zeros((), jnp.int32)))
+        sol = riccati_apply(fac, w, d.defects, g[-1], d.cK)
+        reg_ok = fac.positive & jnp.all(jnp.isfinite(sol.dx))
         dchi, dv = sol.dx[1:], sol.dv
         # bound multipliers: zeta + dzeta = mu / s - Sigma ds
-        dzl = jnp.where(jnp.isfinite(lo), mu / sl - st.zl - st.zl / sl * dchi, 0.0)
-        dzu = jnp.where(jnp.isfinite(hi), mu / su - st.zu + st.zu / su * dchi, 0.0)
+        dzl = jnp.where(has_lo, mu / sl - st.zl - st.zl / sl * dchi, 0.0)
+        dzu = jnp.where(has_hi, mu / su - st.zu + st.zu / su * dchi, 0.0)
         tau = jnp.maximum(options.tau_min, 1.0 - mu)
         a_max = _fraction_to_boundary(st.chi, dchi, lo, hi, tau)
         a_z = jnp.minimum(_multiplier_step(st.zl, dzl, tau), _multiplier_step(st.zu, dzu, tau))
-        # line search with the acceptance test of IPOPT's filter method (without the filter's
-        # memory): sufficient decrease of the violation theta or of the barrier objective phi,
-        # and an Armijo decrease of phi when theta is small and the step is a descent step for phi
-        theta0 = jnp.sum(jnp.abs(d["defects"])) + jnp.sum(jnp.abs(d["cK"]))
-        phi0 = _objective(fns, st.chi) + _barrier(st.chi, lo, hi, mu)
+        # line search with IPOPT's filter acceptance test
+        theta0 = jnp.sum(jnp.abs(d.defects)) + jnp.sum(jnp.abs(d.cK))
+        phi0 = barrier_objective(st.chi, mu)
         slope = jnp.sum(g * dchi)
         theta_max = jnp.where(jnp.isfinite(st.theta_max), st.theta_max, 1e4 * jnp.maximum(1.0, theta0))
         theta_min = 1e-4 * jnp.maximum(1.0, theta_max / 1e4)
+        filt = jnp.where(mu == st.mu, st.filter, jnp.inf)  # reset when mu changes
 
-        # the filter (reset when mu changes): a trial point must not be dominated by any entry
-        filt = jnp.where(mu == st.mu, st.filter, jnp.inf)
-
-        def acceptable(alpha):
+        def trial(alpha):
             theta, phi = theta_phi(st.chi + alpha * dchi, st.v + alpha * dv, mu)
             switching = (slope < 0) & (alpha * (-slope) ** 2.3 > theta0**1.1)
-            armijo = phi <= phi0 + 1e-4 * alpha * slope
             f_type = (theta0 <= theta_min) & switching
+            armijo = phi <= phi0 + 1e-4 * alpha * slope
             h_ok = (theta <= (1 - 1e-5) * theta0) | (phi <= phi0 - 1e-8 * theta0)
             in_filter = jnp.any((theta >= (1 - 1e-5) * filt[:, 0]) & (phi >= filt[:, 1] - 1e-8 * filt[:, 0]))
             ok = jnp.where(f_type, armijo, h_ok) & (theta <= theta_max) & ~in_filter
             return ok & jnp.isfinite(theta) & jnp.isfinite(phi), f_type
 
         def ls_cond(c):
-            alpha, k, ok = c
+            _, k, ok, _ = c
             return (~ok) & (k < options.max_backtracks)
 
         def ls_body(c):
-            alpha, k, _ = c
+            alpha, k, _, _ = c
             alpha = jnp.where(k == 0, alpha, 0.5 * alpha)
-            return alpha, k + 1, acceptable(alpha)[0]
+            ok, f_type = trial(alpha)
+            return alpha, k + 1, ok, f_type
 
-        alpha, _, ls_ok = jax.lax.while_loop(ls_cond, ls_body, (a_max, jnp.zeros((), jnp.int32), jnp.zeros((), bool)))
+        false = jnp.zeros((), bool)
+        alpha, _, ls_ok, f_type = jax.lax.while_loop(ls_cond, ls_body, (a_max, jnp.zeros((), jnp.int32), false, false))
         alpha = jnp.where(ls_ok, alpha, 0.0)
-        # augment the filter after a step that was not an f-type (Armijo) step
-        _, f_type = acceptable(alpha)
         entry = jnp.stack([(1 - 1e-5) * theta0, phi0 - 1e-8 * theta0])
-        augmented = jnp.concatenate([entry[None], filt[:-1]])
-        filt = jnp.where(ls_ok & ~f_type, augmented, filt)
-        new = IPMState(
-            chi=st.chi + alpha * dchi,
+        filt = jnp.where(ls_ok & ~f_type, jnp.concatenate([entry[None], filt[:-1]]), filt)
+        new_chi = st.chi + alpha * dchi
+        sl_n, su_n = slacks(new_chi)
+        zl = st.zl + a_z * dzl
+        zu = st.zu + a_z * dzu
+        # keep the bound multipliers within IPOPT's kappa_Sigma corridor around mu / slack
+        zl = jnp.where(has_lo, jnp.clip(zl, mu / (1e10 * sl_n), 1e10 * mu / sl_n), 0.0)
+        zu = jnp.where(has_hi, jnp.clip(zu, mu / (1e10 * su_n), 1e10 * mu / su_n), 0.0)
+        new = st._replace(
+            chi=new_chi,
             v=st.v + alpha * dv,
             y=st.y + alpha * (sol.y - st.y),
             nu=st.nu + alpha * (sol.nu - st.nu),
-            zl=st.zl + a_z * dzl,
-            zu=st.zu + a_z * dzu,
+            zl=zl,
+            zu=zu,
             mu=mu,
             theta_max=theta_max,
             filter=filt,
             delta_w=delta,
             iteration=st.iteration + 1,
-            error=st.error,
-            result=st.result,
         )
-        # keep the bound multipliers within IPOPT's kappa_Sigma corridor of mu / slack
-        sl_n = jnp.where(jnp.isfinite(lo), new.chi - lo, 1.0)
-        su_n = jnp.where(jnp.isfinite(hi), hi - new.chi, 1.0)
-        zl = jnp.where(jnp.isfinite(lo), jnp.clip(new.zl, mu / (1e10 * sl_n), 1e10 * mu / sl_n), 0.0)
-        zu = jnp.where(jnp.isfinite(hi), jnp.clip(new.zu, mu / (1e10 * su_n), 1e10 * mu / su_n), 0.0)
-        new = new._replace(zl=zl, zu=zu)
-        finite = jnp.all(jnp.isfinite(new.chi)) & jnp.all(jnp.isfinite(new.v))
+        finite = jnp.all(jnp.isfinite(new.chi)) & jnp.all(jnp.isfinite(new.v)) & jnp.all(jnp.isfinite(new.y))
         result = SOLVER_RESULTS.where(
             ~finite,
             SOLVER_RESULTS.nonfinite,
@@ -357,27 +373,40 @@ def ipm_solve(
                 SOLVER_RESULTS.where(~ls_ok, SOLVER_RESULTS.line_search_failed, SOLVER_RESULTS.max_iterations),
             ),
         )
-        new = new._replace(result=result)
         if options.verbose:
             jax.debug.print(
-                "it {i:3d} mu {mu:.1e} err {e:.2e} theta {p:.2e} delta {dl:.1e} alpha {a:.2e} amax {am:.2e} az {az:.2e} ls {ls} phi0 {phi:.6e} slope {sl:.2e} ymax {ym:.1e}",
-                i=st.iteration, mu=mu, e=st.error, p=theta0, dl=delta, a=alpha, am=a_max, az=a_z, ls=ls_ok, phi=phi0, sl=slope, ym=jnp.max(jnp.abs(new.y)),
+                "it {i:3d} mu {mu:.1e} err {e:.2e} theta {t:.2e} delta {dl:.1e} alpha {a:.2e} amax {am:.2e} ls {ls}",
+                i=st.iteration, mu=mu, e=st.error, t=theta0, dl=delta, a=alpha, am=a_max, ls=ls_ok,
             )
-        return jax.tree_util.tree_map(lambda a, b: jnp.where(finite, a, b), new, st._replace(result=result))
+        new = jax.tree_util.tree_map(lambda a, b: jnp.where(finite, a, b), new, st)
+        return new._replace(result=result)
 
     def cond(st: IPMState):
-        running = st.result == SOLVER_RESULTS.max_iterations
-        return running & (st.iteration < options.max_iterations)
+        return (st.result == SOLVER_RESULTS.max_iterations) & (st.iteration < options.max_iterations)
+
+    sr1 = options.hessian == "sr1"
 
     def body(st: IPMState):
         theta, _ = theta_phi(st.chi, st.v, st.mu)
-        kappa = (theta <= options.exact_hessian_tol).astype(dtype)
-        d = _derivatives(fns, st, kappa)
-        e0, _ = _kkt_error(fns, st, d, lo, hi, jnp.zeros((), dtype))
+        exact = theta <= options.exact_hessian_tol
+        d = _derivatives(fns, st, exact, sr1)
+        if sr1:
+            # learn the constraints' curvature from the change of their Jacobians along the step
+            chi_o, v_o, Z_o, C_o = st.previous
+            w_new = jnp.concatenate([st.chi[:-1], st.v[1:]], axis=1)
+            w_old = jnp.concatenate([chi_o[:-1], v_o[1:]], axis=1)
+            dgrad = jnp.einsum("jab,ja->jb", d.Z[1:] - Z_o[1:], st.y[1:])
+            first = st.iteration > 0
+            curv = jnp.where(first, jax.vmap(_sr1)(st.curvature, w_new - w_old, dgrad), st.curvature)
+            curv_K = jnp.where(first, _sr1(st.curvature_K, st.chi[-1] - chi_o[-1], (d.CK - C_o).T @ st.nu), st.curvature_K)
+            st = st._replace(curvature=curv, curvature_K=curv_K, previous=(st.chi, st.v, d.Z, d.CK))
+            d = d._replace(W=d.W.at[1:].add(jnp.where(exact, curv, 0.0)), QK=d.QK + jnp.where(exact, curv_K, 0.0))
+        parts = _kkt_parts(st, d, lo, hi)
+        e0 = _kkt_error(parts, st, lo, hi, zero)
         done = e0 <= tol
-        stepped = iteration(st, d)
+        stepped = step(st, d, parts)
         st = jax.tree_util.tree_map(lambda a, b: jnp.where(done, a, b), st, stepped)
-        return st._replace(error=e0, result=SOLVER_RESULTS.where(done, SOLVER_RESULTS.successful, st.result))
+        st = st._replace(error=e0, violation=parts[1])
+        return st._replace(result=SOLVER_RESULTS.where(done, SOLVER_RESULTS.successful, st.result))
 
     return jax.lax.while_loop(cond, body, st)
-

@@ -3,19 +3,25 @@
 The equality-constrained quadratic program of one interior-point iteration, in stage form
 (``j = 0 .. K-1``, states ``dx_0 .. dx_K``, controls ``dv_0 .. dv_{K-1}``)::
 
-    min  sum_j [ dx_j^T Q_j dx_j / 2 + dv_j^T S_j dx_j + dv_j^T R_j dv_j / 2 + q_j^T dx_j + r_j^T dv_j ]
-         + dx_K^T Q_K dx_K / 2 + q_K^T dx_K
+    min  sum_j [ (dx_j, dv_j)^T W_j (dx_j, dv_j) / 2 + w_j^T (dx_j, dv_j) ] + dx_K^T Q_K dx_K / 2 + q_K^T dx_K
     s.t. dx_0 = 0,   dx_{j+1} = A_j dx_j + B_j dv_j + e_j,   C dx_K + c = 0,
 
-is solved exactly in O(K) by the backward Riccati recursion and a forward pass. The terminal
-equality is handled by carrying the costate's dependence on its multiplier ``nu`` through both
-passes (one extra column per constraint): the terminal state is affine in ``nu``,
-``dx_K = a + M nu``, and ``nu`` solves the small system ``(C M - delta I) nu = -(C a + c)``.
-The recursion reports whether every ``H_j = R_j + B_j^T P_{j+1} B_j`` was positive definite (the
-reduced Hessian is then positive definite on the dynamics' null space, the inertia condition of an
-interior-point method); the caller regularises and retries otherwise.
+with ``Z_j = [A_j, B_j]``, is solved exactly in O(K) by a backward Riccati recursion and a
+forward pass, in two phases:
 
-Everything is small dense algebra in ``lax.scan`` (no LAPACK: :func:`ldap_jax._linalg.solve`).
+* :func:`riccati_factor` depends on the matrices only (``W``, ``Z``, ``Q_K``, ``C``): the gains,
+  the value-function Hessians ``P_j``, and how the terminal multiplier ``nu`` of ``C dx_K + c = 0``
+  enters (one extra column per constraint: the terminal state is affine in ``nu``,
+  ``dx_K = a + M nu``, and ``nu`` solves ``(C M - delta I) nu = -(C a + c)``); it reports whether
+  every ``H_j = R_j + B_j^T P_{j+1} B_j`` was positive definite (the reduced Hessian is then
+  positive definite on the dynamics' null space, the inertia condition of an interior-point
+  method);
+* :func:`riccati_apply` is linear in the right-hand side ``(w, e, q_K, c)``: one backward and one
+  forward pass. Derivatives of a solution with respect to the right-hand side (the implicit
+  function theorem of :mod:`._solve`) transpose it as any linear map.
+
+Small dense algebra in ``lax.scan`` (no LAPACK), with the stage blocks stacked so that each stage
+costs a handful of matrix products: per-operation overhead, not arithmetic, dominates here.
 """
 
 from __future__ import annotations
@@ -28,19 +34,16 @@ from jaxtyping import Array, Bool, Float
 
 from .._linalg import solve
 
-__all__ = ["QP", "QPSolution", "riccati_solve", "positive_definite"]
+__all__ = ["QP", "QPSolution", "Factor", "riccati_factor", "riccati_apply", "riccati_solve", "spd_solve"]
 
 
 class QP(NamedTuple):
-    """Stage data (leading axis ``K`` for the ``j``-indexed blocks)."""
+    """Stage data (leading axis ``K`` for the ``j``-indexed blocks). ``W_j`` is the stage Hessian
+    over ``(dx_j, dv_j)``, ``w_j`` its gradient and ``Z_j = [A_j, B_j]`` the linearised dynamics."""
 
-    Q: Float[Array, "K n n"]
-    S: Float[Array, "K m n"]
-    R: Float[Array, "K m m"]
-    q: Float[Array, "K n"]
-    r: Float[Array, "K m"]
-    A: Float[Array, "K n n"]
-    B: Float[Array, "K n m"]
+    W: Float[Array, "K nm nm"]
+    w: Float[Array, "K nm"]
+    Z: Float[Array, "K n nm"]
     e: Float[Array, "K n"]
     QK: Float[Array, "n n"]
     qK: Float[Array, " n"]
@@ -53,71 +56,112 @@ class QPSolution(NamedTuple):
     dv: Float[Array, "K m"]
     y: Float[Array, "K n"]  # costates y_j = P_{j+1} dx_{j+1} + p_{j+1}: the dynamics multipliers
     nu: Float[Array, " p"]
+
+
+class Factor(NamedTuple):
+    """What :func:`riccati_factor` computes from the matrices."""
+
+    Z: Float[Array, "K n nm"]
+    K: Float[Array, "K m n"]  # feedback gains
+    Hinv: Float[Array, "K m m"]  # inverses of H_j
+    Hxu: Float[Array, "K n m"]
+    P: Float[Array, "K n n"]  # P_{j+1}
+    Knu: Float[Array, "K m p"]  # control response to nu
+    Pnu: Float[Array, "K n p"]  # costate response to nu, at j + 1
+    Mx: Float[Array, "K n p"]  # state response to nu, dx_{j+1}
+    Mv: Float[Array, "K m p"]  # control response to nu, dv_j
+    C: Float[Array, "p n"]
+    CM_inv: Float[Array, "p p"]
     positive: Bool[Array, ""]
 
 
-def positive_definite(h: Array) -> Bool[Array, ""]:
-    """True when the small symmetric matrix ``h`` is positive definite (unrolled Cholesky pivots)."""
+def spd_solve(h: Array, rhs: Array) -> tuple[Array, Bool[Array, ""]]:
+    """``h^-1 rhs`` for a small symmetric ``h``, and whether ``h`` is positive definite
+    (closed forms for 1 x 1 and 2 x 2; unrolled Cholesky pivots and Gauss-Jordan otherwise)."""
     m = h.shape[0]
-    a = h
-    ok = jnp.ones((), bool)
+    if m == 1:
+        return rhs / h[0, 0], h[0, 0] > 0
+    if m == 2:
+        a, b, d = h[0, 0], h[0, 1], h[1, 1]
+        det = a * d - b * b
+        inv = jnp.stack([jnp.stack([d, -b]), jnp.stack([-b, a])]) / det
+        return inv @ rhs, (a > 0) & (det > 0)
+    piv_ok = jnp.ones((), bool)
+    t = h
     for k in range(m):
-        piv = a[k, k]
-        ok = ok & (piv > 0) & jnp.isfinite(piv)
-        safe = jnp.where(piv > 0, piv, 1.0)
-        col = a[:, k] / safe
-        a = a - jnp.outer(col, a[k, :]) * (jnp.arange(m) > k)[:, None]
-    return ok
+        piv = t[k, k]
+        piv_ok = piv_ok & (piv > 0)
+        col = t[:, k] / jnp.where(piv > 0, piv, 1.0)
+        t = t - jnp.outer(col, t[k, :]) * (jnp.arange(m) > k)[:, None]
+    return solve(h, rhs), piv_ok
+
+
+def riccati_factor(W: Array, Z: Array, QK: Array, C: Array, delta_c: Array) -> Factor:
+    """The matrix phase of the recursion (see the module docstring)."""
+    n = QK.shape[0]
+    m = W.shape[1] - n
+    p = C.shape[0]
+    dtype = QK.dtype
+
+    def backward(carry, data):
+        P, Pn, ok = carry
+        W_j, Z_j = data
+        PZ = P @ Z_j
+        G = Z_j.T @ PZ + W_j
+        H = 0.5 * (G[n:, n:] + G[n:, n:].T)
+        Hinv, ok_j = spd_solve(H, jnp.eye(m, dtype=dtype))
+        Hxu = G[:n, n:]
+        K = -Hinv @ Hxu.T
+        P_new = G[:n, :n] + Hxu @ K
+        gn = Z_j.T @ Pn  # (n + m, p)
+        Knu = -Hinv @ gn[n:]
+        Pn_new = gn[:n] + Hxu @ Knu
+        return (0.5 * (P_new + P_new.T), Pn_new, ok & ok_j), (K, Hinv, Hxu, P, Knu, Pn)
+
+    (_, _, positive), (K, Hinv, Hxu, P, Knu, Pnu) = jax.lax.scan(
+        backward, (QK, C.T, jnp.ones((), bool)), (W, Z), reverse=True
+    )
+
+    def forward(Mx, data):
+        K_j, Knu_j, Z_j = data
+        Mv = K_j @ Mx + Knu_j
+        Mx_next = Z_j @ jnp.concatenate([Mx, Mv], axis=0)
+        return Mx_next, (Mx_next, Mv)
+
+    MK, (Mx, Mv) = jax.lax.scan(forward, jnp.zeros((n, p), dtype), (K, Knu, Z))
+    CM_inv = solve(C @ MK - delta_c * jnp.eye(p, dtype=dtype), jnp.eye(p, dtype=dtype)) if p else jnp.zeros((0, 0), dtype)
+    return Factor(Z=Z, K=K, Hinv=Hinv, Hxu=Hxu, P=P, Knu=Knu, Pnu=Pnu, Mx=Mx, Mv=Mv, C=C, CM_inv=CM_inv, positive=positive)
+
+
+def riccati_apply(f: Factor, w: Array, e: Array, qK: Array, c: Array) -> QPSolution:
+    """The right-hand-side phase: linear in ``(w, e, qK, c)``."""
+    n = qK.shape[0]
+    dtype = qK.dtype
+
+    def backward(pv, data):
+        Z_j, P_next, Hinv, Hxu, w_j, e_j = data
+        pe = pv + P_next @ e_j
+        gz = Z_j.T @ pe + w_j
+        k = -Hinv @ gz[n:]
+        return gz[:n] + Hxu @ k, (k, pv)
+
+    _, (k, p_next) = jax.lax.scan(backward, qK, (f.Z, f.P, f.Hinv, f.Hxu, w, e), reverse=True)
+
+    def forward(dx, data):
+        K_j, k_j, Z_j, e_j = data
+        dv = K_j @ dx + k_j
+        dx_next = Z_j @ jnp.concatenate([dx, dv]) + e_j
+        return dx_next, (dx_next, dv)
+
+    a, (dx_a, dv_a) = jax.lax.scan(forward, jnp.zeros((n,), dtype), (f.K, k, f.Z, e))
+    nu = -f.CM_inv @ (f.C @ a + c)
+    dx = jnp.concatenate([jnp.zeros((1, n), dtype), dx_a + f.Mx @ nu])
+    dv = dv_a + f.Mv @ nu
+    y = jnp.einsum("jab,jb->ja", f.P, dx[1:]) + p_next + f.Pnu @ nu
+    return QPSolution(dx=dx, dv=dv, y=y, nu=nu)
 
 
 def riccati_solve(qp: QP, delta_c: Array) -> QPSolution:
-    """Solve the stage-structured KKT system of :class:`QP` (see the module docstring)."""
-    n = qp.QK.shape[0]
-    p = qp.C.shape[0]
-    dtype = qp.QK.dtype
-    # costate gradient columns: [base | one per terminal constraint]
-    p_K = jnp.concatenate([qp.qK[:, None], qp.C.T], axis=1)  # (n, 1 + p)
-
-    def backward(carry, data):
-        P, pm, ok = carry
-        Q, S, R, q, r, A, B, e = data
-        PB = P @ B
-        H = R + B.T @ PB
-        H = 0.5 * (H + H.T)
-        Hx = S + PB.T @ A
-        pe = pm.at[:, 0].add(P @ e)
-        g = jnp.concatenate([r[:, None], jnp.zeros((r.shape[0], p), dtype)], axis=1) + B.T @ pe
-        ok = ok & positive_definite(H)
-        sol = solve(H, jnp.concatenate([Hx, g], axis=1))
-        K, k = -sol[:, :n], -sol[:, n:]
-        P_new = Q + A.T @ P @ A + Hx.T @ K
-        P_new = 0.5 * (P_new + P_new.T)
-        pm_new = A.T @ pe + Hx.T @ k
-        pm_new = pm_new.at[:, 0].add(q)
-        return (P_new, pm_new, ok), (K, k, P, pm)
-
-    data = (qp.Q, qp.S, qp.R, qp.q, qp.r, qp.A, qp.B, qp.e)
-    (_, _, positive), (K, k, P_next, pm_next) = jax.lax.scan(
-        backward, (qp.QK, p_K, jnp.ones((), bool)), data, reverse=True
-    )
-
-    def forward(dx, data):
-        K_j, k_j, A, B, e = data
-        dv = K_j @ dx + k_j
-        dx_next = A @ dx + B @ dv
-        dx_next = dx_next.at[:, 0].add(e)
-        return dx_next, (dx_next, dv)
-
-    dx0 = jnp.zeros((n, 1 + p), dtype)
-    dxK, (dxs, dvs) = jax.lax.scan(forward, dx0, (K, k, qp.A, qp.B, qp.e))
-    a, M = dxK[:, 0], dxK[:, 1:]
-    if p:
-        lhs = qp.C @ M - delta_c * jnp.eye(p, dtype=dtype)
-        nu = solve(lhs, -(qp.C @ a + qp.c))
-    else:
-        nu = jnp.zeros((0,), dtype)
-    coef = jnp.concatenate([jnp.ones((1,), dtype), nu])
-    dx = jnp.concatenate([jnp.zeros((1, n), dtype), dxs @ coef])
-    dv = dvs @ coef
-    y = jnp.einsum("jab,jb->ja", P_next, dx[1:]) + pm_next @ coef
-    return QPSolution(dx=dx, dv=dv, y=y, nu=nu, positive=positive)
+    """Factor and apply in one call."""
+    f = riccati_factor(qp.W, qp.Z, qp.QK, qp.C, delta_c)
+    return riccati_apply(f, qp.w, qp.e, qp.qK, qp.c)

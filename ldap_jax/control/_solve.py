@@ -11,8 +11,9 @@ from jaxtyping import Array, Bool, Float, Int
 
 from .._discrete import DiscreteDynamics, discretize
 from .._validation import check_positive_int
-from ._costs import TerminalRest, pose_error
-from ._ipm import SOLVER_RESULTS, IPMOptions, IPMState, OCPFunctions, ipm_solve
+from ._costs import Node, TerminalRest, pose_error
+from ._ipm import SOLVER_RESULTS, IPMOptions, IPMState, OCPFunctions, _constraints, _derivatives, ipm_solve
+from ._riccati import riccati_apply, riccati_factor
 from ._parameterizations import SampledControls
 from ._tasks import Task
 
@@ -68,17 +69,17 @@ def problem_functions(task: Task, dyn: DiscreteDynamics, x0: Array) -> tuple[OCP
     def stage_cost(chi):
         x, u = split(chi)
         c = u * scale
-        obs = dyn.observe(x, c)
+        obs = Node(*dyn.node(x, c))
         return sum((t.stage(system, obs, c, h) for t in terms), jnp.zeros((), chi.dtype))
 
     def terminal_cost(chi):
         x, u = split(chi)
-        obs = dyn.observe(x, u * scale)
+        obs = Node(*dyn.node(x, u * scale))
         return sum((t.terminal(system, obs, task.q0) for t in terms), jnp.zeros((), chi.dtype))
 
     def terminal(chi):
         x, u = split(chi)
-        obs = dyn.observe(x, u * scale)
+        obs = Node(*dyn.node(x, u * scale))
         parts = []
         if task.goal is not None:
             parts.append(pose_error(obs.q, task.goal))
@@ -141,33 +142,119 @@ def solve(
     return _solve(task, params0, IPMOptions(tol=float(tol), max_iterations=max_iterations))
 
 
+def _setup(task: Task, v0: Array):
+    """The discrete dynamics, the initial state and the stage functions of ``task``."""
+    scale = task.parameterization.scale
+    dyn = discretize(task.system, task.integrator, h=task.h)
+    x0 = dyn.init(task.q0, task.qdot0, v0 * scale)
+    fns, lo, hi = problem_functions(task, dyn, x0)
+    return dyn, x0, fns, lo, hi
+
+
+def _stopped(tree):
+    return jax.tree_util.tree_map(lambda x: jax.lax.stop_gradient(x) if eqx.is_inexact_array(x) else x, tree)
+
+
 @eqx.filter_jit
 def _solve(task: Task, params0: Array, options: IPMOptions) -> Solution:
     dtype = task.q0.dtype
     params0 = params0.astype(dtype)
-    scale = task.parameterization.scale
-    dyn = discretize(task.system, task.integrator, h=task.h)
-    x0 = dyn.init(task.q0, task.qdot0, params0[0] * scale)
-    fns, lo, hi = problem_functions(task, dyn, x0)
+    fixed = _stopped(task)
+    dyn, x0, fns, lo, hi = _setup(fixed, params0[0])
+    scale = fixed.parameterization.scale
     xs = dyn.rollout(x0, params0 * scale[None])
     chi = jnp.concatenate([xs, params0], axis=1)
     st: IPMState = ipm_solve(fns, chi, params0, lo, hi, options)
-    defects = jnp.concatenate(
-        [(fns.first(st.v[0]) - st.chi[0])[None], jax.vmap(fns.dynamics)(st.chi[:-1], st.v[1:]) - st.chi[1:]]
-    )
-    cK = fns.terminal(st.chi[-1])
-    bound_viol = jnp.max(jnp.maximum(st.chi - hi, 0.0) + jnp.maximum(lo - st.chi, 0.0))
-    violation = jnp.maximum(jnp.maximum(jnp.max(jnp.abs(defects)), jnp.max(jnp.abs(cK), initial=0.0)), bound_viol)
-    cost = jnp.sum(jax.vmap(fns.stage_cost)(st.chi)) + fns.terminal_cost(st.chi[-1])
+    v, chi_opt, cost = _optimum(task, st)
+    defects, cK = _constraints(fns, st.chi, st.v)  # at the returned point
+    violation = jnp.maximum(jnp.max(jnp.abs(defects)), jnp.max(jnp.abs(cK), initial=0.0))
     n = dyn.n_state
     return Solution(
-        params=st.v,
+        params=v,
         converged=st.result == SOLVER_RESULTS.successful,
         iterations=st.iteration,
         cost=cost,
         max_violation=violation,
         kkt_error=st.error,
         result=st.result,
-        states=st.chi[:, :n],
+        states=chi_opt[:, :n],
         multipliers=(st.y, st.nu),
     )
+
+
+@eqx.filter_custom_jvp
+def _optimum(task: Task, st: IPMState):
+    """The optimum ``(v, chi, cost)`` of a converged run; its derivatives with respect to the
+    task's parameters come from the implicit function theorem (see :func:`_optimum_jvp`)."""
+    _, _, fns, _, _ = _setup(task, st.v[0])
+    cost = jnp.sum(jax.vmap(fns.stage_cost)(st.chi)) + fns.terminal_cost(st.chi[-1])
+    return st.v, st.chi, cost
+
+
+@_optimum.def_jvp
+def _optimum_jvp(primals, tangents):
+    """Implicit function theorem at the solution: the barrier problem's KKT conditions
+    ``G(z, lambda; theta) = 0`` (with the bound multipliers eliminated, ``zeta = mu / slack``) give
+    ``[[W + Sigma, J^T], [J, 0]] (dz, dlambda) = -(d_theta grad L, d_theta c) dtheta``: the same
+    structured system as a Newton step, solved by the same Riccati recursion with the exact
+    Hessian of the Lagrangian at the solution."""
+    task, st = primals
+    t_task, _ = tangents
+    v, chi, cost = _optimum(task, st)
+    K, n = chi.shape
+    m = v.shape[1]
+    dtype = chi.dtype
+    if t_task is None:
+        zero = (jnp.zeros_like(v), jnp.zeros_like(chi), jnp.zeros_like(cost))
+        return (v, chi, cost), zero
+    diff, static = eqx.partition(task, eqx.is_inexact_array)
+    t_diff = jax.tree_util.tree_map(
+        lambda x, t: None if x is None else (jnp.zeros_like(x) if t is None else t),
+        diff,
+        t_task,
+        is_leaf=lambda x: x is None,
+    )
+    mu = st.mu
+
+    def residuals(diff_):
+        task_ = eqx.combine(diff_, static)
+        _, _, fns_, lo_, hi_ = _setup(task_, v[0])
+
+        def lagrangian(chi_, v_):
+            defects = jnp.concatenate(
+                [(fns_.first(v_[0]) - chi_[0])[None], jax.vmap(fns_.dynamics)(chi_[:-1], v_[1:]) - chi_[1:]]
+            )
+            f = jnp.sum(jax.vmap(fns_.stage_cost)(chi_)) + fns_.terminal_cost(chi_[-1])
+            sl = jnp.where(jnp.isfinite(lo_), chi_ - lo_, 1.0)
+            su = jnp.where(jnp.isfinite(hi_), hi_ - chi_, 1.0)
+            barrier = -mu * (jnp.sum(jnp.where(jnp.isfinite(lo_), jnp.log(sl), 0.0))
+                             + jnp.sum(jnp.where(jnp.isfinite(hi_), jnp.log(su), 0.0)))
+            return f + barrier + jnp.sum(st.y * defects) + st.nu @ fns_.terminal(chi_[-1]), defects
+
+        (g_chi, g_v), defects = jax.grad(lagrangian, argnums=(0, 1), has_aux=True)(chi, v)
+        return g_chi, g_v, defects, fns_.terminal(chi[-1])
+
+    _, (r_chi, r_v, e, c) = jax.jvp(residuals, (diff,), (t_diff,))
+    _, _, fns, lo, hi = _setup(task, v[0])
+    d = _derivatives(fns, st, jnp.asarray(True), False)
+    sl = jnp.where(jnp.isfinite(lo), chi - lo, 1.0)
+    su = jnp.where(jnp.isfinite(hi), hi - chi, 1.0)
+    sigma = jnp.where(jnp.isfinite(lo), st.zl / sl, 0.0) + jnp.where(jnp.isfinite(hi), st.zu / su, 0.0)
+    diag = jax.vmap(jnp.diag)(jnp.concatenate([jnp.zeros((1, n), dtype), sigma[:-1]]))
+    # the matrices belong to the solution (no tangent flows through them); the map from the
+    # right-hand side to the step is linear, so forward and reverse mode both go through it
+    fac = jax.lax.stop_gradient(
+        riccati_factor(d.W.at[:, :n, :n].add(diag), d.Z, d.QK + jnp.diag(sigma[-1]), d.CK, jnp.zeros((), dtype))
+    )
+    w = jnp.concatenate([jnp.concatenate([jnp.zeros((1, n), dtype), r_chi[:-1]]), r_v], axis=1)
+    sol = riccati_apply(fac, w, e, r_chi[-1], c)
+    dchi, dv = sol.dx[1:], sol.dv
+
+    def objective(chi_, diff_):
+        task_ = eqx.combine(diff_, static)
+        _, _, fns_, _, _ = _setup(task_, v[0])
+        return jnp.sum(jax.vmap(fns_.stage_cost)(chi_)) + fns_.terminal_cost(chi_[-1])
+
+    _, dcost = jax.jvp(objective, (chi, diff), (dchi, t_diff))
+    del m, K
+    return (v, chi, cost), (dv, dchi, dcost)

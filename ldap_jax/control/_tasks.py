@@ -29,7 +29,7 @@ from .._simulate import Trajectory, simulate
 from .._validation import check_positive_int
 from ..integrators import RDP, AbstractIntegrator
 from ..systems import AbstractSystem, Car, Snakeboard
-from ._costs import AbstractTerm, BoundPenalty, Effort, Forward, TerminalPose, TerminalRest, evaluate_terms
+from ._costs import AbstractTerm, BoundPenalty, Effort, Forward, Node, TerminalPose, TerminalRest, evaluate_terms
 from ._costs import pose_error, wrap_angle
 from ._parameterizations import AbstractParameterization, SampledControls, SinusoidGait
 
@@ -128,7 +128,7 @@ class Task(eqx.Module):
         """Every term on a trajectory (objective terms scaled by ``objective_weight``)."""
         ctl = self.controls(params)
         c = jax.vmap(ctl)(traj.t)
-        obs = _NodeObs(traj.q, traj.qdot)
+        obs = Node(traj.q, traj.qdot)
         out = {k: self.objective_weight * v for k, v in evaluate_terms(self.objective_terms(), self.system, obs, c, self.h, self.q0).items()}
         out.update(evaluate_terms(self.constraint_terms(), self.system, obs, c, self.h, self.q0))
         return out
@@ -170,11 +170,6 @@ class Task(eqx.Module):
                     task, parameterization=dataclasses.replace(task.parameterization, n_steps=int(n_steps))
                 )
         return task
-
-
-class _NodeObs(NamedTuple):
-    q: Array
-    qdot: Array
 
 
 def make_task(

@@ -98,6 +98,11 @@ class AbstractIntegrator(eqx.Module):
     def observe(self, system: AbstractSystem, state: Any, c: Array) -> Observation:
         """The node held by ``state``: configuration, velocity, diagnostics."""
 
+    def node(self, system: AbstractSystem, state: Any, c: Array) -> tuple[Array, Array]:
+        """``(q, qdot)`` held by ``state``, without the diagnostics (default: from :meth:`observe`)."""
+        obs = self.observe(system, state, c)
+        return obs.q, obs.qdot
+
 
 class AbstractAlphaIntegrator(AbstractIntegrator):
     """A one-step scheme with a quadrature point ``alpha in [0, 1]`` (RDP, DLA, GNI).

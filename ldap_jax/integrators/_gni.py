@@ -154,9 +154,11 @@ class GNI(AbstractAlphaIntegrator):
         return new, StepInfo(result=result, residual=violation, iterations=jnp.zeros((), jnp.int32))
 
     def observe(self, system, state, c):
-        q = state.q
-        qdot = legendre_inverse(system, q, state.p, system.inputs(c)[1])
+        q, qdot = self.node(system, state, c)
         return system.observation(q, qdot[3:], body_velocity(q, qdot), c)
+
+    def node(self, system, state, c):
+        return state.q, legendre_inverse(system, state.q, state.p, system.inputs(c)[1])
 
 
 def _kin_velocity(system, v: Array, u_kin: Array) -> Array:

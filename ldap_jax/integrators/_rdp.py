@@ -15,7 +15,7 @@ from .._results import RESULTS
 from .._newton import newton
 from ..lie import compose, dtau_inv, retract
 from ..systems import AbstractClosedFormSystem, AbstractSystem, Observation
-from ..systems._base import body_velocity
+from ..systems._base import body_velocity, spatial_velocity
 from ._base import AbstractAlphaIntegrator, StepInfo, classify, concrete_float, finite
 from ._composition import DEFAULT_SCHEMES, SCHEMES, scheme_nodes
 
@@ -215,6 +215,13 @@ class RDP(AbstractAlphaIntegrator):
         q = state.q
         u, xi = system.velocity_from_momenta(q[3:], state.pu, state.mu, system.inputs(c)[1])
         return system.observation(q, u, xi, c)
+
+    def node(self, system, state, c):
+        if self.uses_kernel(system):
+            return system.kernel_node(state, c)
+        q = state.q
+        u, xi = system.velocity_from_momenta(q[3:], state.pu, state.mu, system.inputs(c)[1])
+        return q, jnp.concatenate([spatial_velocity(q, xi), u])
 
     # ------------------------------------------------------------------ steps
     def step(self, system, h, state, c):

@@ -42,6 +42,10 @@ class AbstractRungeKutta(AbstractIntegrator):
         qdot = system.qdot_from_velocities(q, v, system.inputs(c)[1])
         return system.observation(q, qdot[3:], body_velocity(q, qdot), c)
 
+    def node(self, system, state, c):
+        q, v = state
+        return q, system.qdot_from_velocities(q, v, system.inputs(c)[1])
+
     def step(self, system, h, state, c):
         q, v = state
         tab = self.tableau

@@ -16,7 +16,7 @@ from jaxtyping import Array
 from .._numerics import materialise, saved, sincos
 from ._se2 import exp_translation, small_angle
 
-__all__ = ["Pose", "pose_from_xy_theta", "pose_retract", "dtau1_transpose"]
+__all__ = ["Pose", "pose_from_xy_theta", "pose_retract", "dtau1_transpose", "body_to_qdot"]
 
 
 class Pose(NamedTuple):
@@ -64,3 +64,9 @@ def dtau1_transpose(
     m1, m2, m3 = mu
     adt = (v3 * m2 - v2 * m3, v1 * m3, -v1 * m2)
     return tuple(m - 0.5 * sign * t for m, t in zip(mu, adt))
+
+
+def body_to_qdot(g: Pose, u: Array, xi: Array) -> Array:
+    """``qdot = (xdot, ydot, thetadot, u)`` from the body velocity ``xi = (omega, v_x, v_y)`` at ``g``."""
+    c, s = g.cos, g.sin
+    return jnp.concatenate([jnp.stack([c * xi[1] - s * xi[2], s * xi[1] + c * xi[2], xi[0]]), u])

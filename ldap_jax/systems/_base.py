@@ -19,20 +19,20 @@ from __future__ import annotations
 
 import abc
 import dataclasses
-from typing import ClassVar, NamedTuple
+from typing import Any, ClassVar, NamedTuple
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Bool, Float
+from jaxtyping import Array, Bool, Float
 
 from .._linalg import solve
 
 __all__ = ["AbstractSystem", "Observation", "body_velocity", "spatial_velocity", "physical_parameter"]
 
 
-def physical_parameter(x: ArrayLike) -> Array:
+def physical_parameter(x: Any) -> Array:
     """Converter for physical parameters: a floating array (the default float dtype for ints).
 
     Raises:

@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
-from ..lie._scalar import Pose, dtau1_transpose, pose_from_xy_theta, pose_retract
+from ..lie._scalar import Pose, body_to_qdot, dtau1_transpose, pose_from_xy_theta, pose_retract
 from ._base import physical_parameter, positive_checks
 from ._closed_form import AbstractClosedFormSystem
 
@@ -187,11 +187,20 @@ class Car(AbstractClosedFormSystem):
         )
         return new, residual, jnp.zeros(jnp.shape(residual), bool)
 
-    def kernel_observe(self, state, c):
+    def _kernel_velocity(self, state, c):
+        """Configuration and velocities ``(u, xi)`` from the carried momenta (:meth:`_solve` at ``h = 0``)."""
         u_psi = self._solve(state.pu[0], state.mu, state.sigma, state.sigma)
         u = jnp.stack([u_psi, c[1]])
         rho = self.rho
         xi = jnp.stack([rho * state.sigma / self.l * u_psi, rho * u_psi, jnp.zeros_like(u_psi)])
         g = state.pose
-        q = jnp.stack([g.x, g.y, g.theta, state.psi, state.sigma])
-        return self.observation(q, u, xi, c, rotation=(g.cos, g.sin), momentum=jnp.zeros((0,), u.dtype))
+        return jnp.stack([g.x, g.y, g.theta, state.psi, state.sigma]), u, xi
+
+    def kernel_observe(self, state, c):
+        q, u, xi = self._kernel_velocity(state, c)
+        rotation = (state.pose.cos, state.pose.sin)
+        return self.observation(q, u, xi, c, rotation=rotation, momentum=jnp.zeros((0,), u.dtype))
+
+    def kernel_node(self, state, c):
+        q, u, xi = self._kernel_velocity(state, c)
+        return q, body_to_qdot(state.pose, u, xi)

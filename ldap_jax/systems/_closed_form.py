@@ -57,6 +57,12 @@ class AbstractClosedFormSystem(AbstractSystem):
     def kernel_observe(self, state: Any, c: Array) -> Observation:
         """The node's :class:`Observation`, with controls ``c`` at the node's time."""
 
+    def kernel_node(self, state: Any, c: Array) -> tuple[Array, Array]:
+        """``(q, qdot)`` of the node without the diagnostics (default: from :meth:`kernel_observe`;
+        a kernel may give a lighter path, which derivatives of a rollout then differentiate)."""
+        obs = self.kernel_observe(state, c)
+        return obs.q, obs.qdot
+
     @abc.abstractmethod
     def kernel_momenta(self, state: Any) -> tuple[Array, Array, Array]:
         """``(q, pu, mu)`` held by a kernel state."""

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 from jaxtyping import Array
 
 from .._numerics import materialise, saved, sincos
-from ..lie._scalar import Pose, dtau1_transpose, pose_from_xy_theta, pose_retract
+from ..lie._scalar import Pose, body_to_qdot, dtau1_transpose, pose_from_xy_theta, pose_retract
 from ._base import physical_parameter, positive_checks
 from ._closed_form import AbstractClosedFormSystem, Observation
 
@@ -265,7 +265,9 @@ class Snakeboard(AbstractClosedFormSystem):
         )
         return new, residual, singular
 
-    def kernel_observe(self, state, c):
+    def _kernel_velocity(self, state):
+        """Configuration, velocities ``(u, xi)`` from the carried momenta (:meth:`_solve` at
+        ``h = 0``) and the node's momentum ``nu = <mu_in, e_1(phi_k)>``."""
         ck, sk = state.cos_phi, state.sin_phi
         l = self.l
         nu = state.mu[0] * 2 * sk * ck - state.mu[1] * 2 * l * ck**2
@@ -273,5 +275,12 @@ class Snakeboard(AbstractClosedFormSystem):
         u = jnp.stack([u_psi, state.pu[1] / (2 * self.J)])
         xi = jnp.stack([cc * 2 * sk * ck, -2 * l * ck**2 * cc, jnp.zeros_like(cc)])
         g = state.pose
-        q = jnp.stack([g.x, g.y, g.theta, state.psi, state.phi])
-        return self.observation(q, u, xi, c, rotation=(g.cos, g.sin), momentum=nu[None])
+        return jnp.stack([g.x, g.y, g.theta, state.psi, state.phi]), u, xi, nu
+
+    def kernel_observe(self, state, c):
+        q, u, xi, nu = self._kernel_velocity(state)
+        return self.observation(q, u, xi, c, rotation=(state.pose.cos, state.pose.sin), momentum=nu[None])
+
+    def kernel_node(self, state, c):
+        q, u, xi, _ = self._kernel_velocity(state)
+        return q, body_to_qdot(state.pose, u, xi)
