@@ -11,11 +11,11 @@ $(VENV)/bin/python:
 	$(PY) -m pip install -q --upgrade pip
 
 $(VENV)/.installed: pyproject.toml | $(VENV)/bin/python
-	$(PY) -m pip install -q -e .
+	$(PY) -m pip install -q -e '.[bench]'
 	touch $@
 
 $(VENV)/.installed-dev: pyproject.toml | $(VENV)/bin/python
-	$(PY) -m pip install -q -e '.[dev]'
+	$(PY) -m pip install -q -e '.[dev,bench]'
 	touch $@ $(VENV)/.installed
 
 # The main job at quick settings; figures and tables under results/.
@@ -25,6 +25,7 @@ demo: $(VENV)/.installed
 	$(PY) scripts/optimize.py --model car --task parallel_park --quick --out results
 	$(PY) scripts/optimize.py --model snakeboard --task forward_gait --quick --out results
 	$(PY) scripts/bench.py --quick --out results
+	$(PY) scripts/bench_control.py --quick --out results
 
 # The test suite (2 workers); pytest's "no tests collected" (exit 5) is a failure here.
 test: $(VENV)/.installed-dev

@@ -6,12 +6,13 @@ steered car and the snakeboard, RK baselines, a diffrax reference, and end-to-en
 differentiable rollouts.
 """
 
-from importlib.metadata import PackageNotFoundError, version
+import importlib.metadata as _metadata
 
 from . import control as control
 from . import integrators as integrators
 from . import lie as lie
 from . import systems as systems
+from ._compilation_cache import enable_compilation_cache as enable_compilation_cache
 from ._compilation_cache import memory_mappings as memory_mappings
 from ._compilation_cache import trim_compilation_cache as trim_compilation_cache
 from ._controls import AbstractControls as AbstractControls
@@ -42,6 +43,6 @@ from .systems import chaplygin_sleigh as chaplygin_sleigh
 from .systems import roller_racer as roller_racer
 
 try:
-    __version__ = version("ldap_jax")
-except PackageNotFoundError:  # pragma: no cover
+    __version__ = _metadata.version("ldap_jax")
+except _metadata.PackageNotFoundError:  # pragma: no cover
     __version__ = "0.0.0"

@@ -10,16 +10,36 @@ with a segmentation fault while that error propagates. Nothing is leaked: droppi
 
 :func:`trim_compilation_cache` does that only when the mapping count is high, so it is cheap to
 call between units of work (the study calls it between points, the test suite between tests).
+The library also calls it by itself where user code compiles repeatedly: :func:`ldap_jax.simulate`
+and :func:`ldap_jax.reference` count the distinct programs they are asked for (a new ``n_steps``,
+save plan, integrator, dtype, ...) and, every :data:`CHECK_EVERY` new ones, trim
+(:func:`note_program`; only when called outside any JAX trace).
 """
 
 from __future__ import annotations
 
 import gc
+import os
 import sys
+from typing import Any
 
 import jax
 
-__all__ = ["memory_mappings", "trim_compilation_cache"]
+__all__ = [
+    "memory_mappings",
+    "trim_compilation_cache",
+    "enable_compilation_cache",
+    "note_program",
+    "program_key",
+    "CHECK_EVERY",
+]
+
+#: :func:`note_program` checks the memory mappings every this many new programs: a compiled
+#: rollout holds 300 to 600 mappings, so 8 programs stay far below the half of
+#: ``vm.max_map_count`` (65530 by default) that :func:`trim_compilation_cache` leaves as margin.
+CHECK_EVERY = 8
+_seen: set = set()
+_new_programs = 0
 
 
 def memory_mappings() -> tuple[int, int] | None:
@@ -63,3 +83,94 @@ def trim_compilation_cache(threshold: float = 0.5) -> bool:
     jax.clear_caches()
     gc.collect()
     return True
+
+
+def _tracing() -> bool:
+    """True inside a JAX trace (``jit``, ``vmap``, ``grad``...), where clearing caches is unsafe."""
+    try:
+        from jax._src import core
+
+        return not core.trace_state_clean()
+    except (ImportError, AttributeError):  # pragma: no cover - a future JAX: never trim
+        return True
+
+
+def note_program(key: Any) -> bool:
+    """Record that the library is about to run the program identified by ``key`` (hashable: the
+    static settings, tree structures, shapes and dtypes that select a compilation). Every
+    :data:`CHECK_EVERY` distinct new keys, call :func:`trim_compilation_cache` (which clears
+    JAX's caches only above half of the mapping budget). A no-op inside a JAX trace or for an
+    unhashable key.
+
+    Returns:
+        True if the caches were cleared.
+    """
+    global _new_programs
+    try:
+        if key in _seen:
+            return False
+    except TypeError:  # unhashable static data: do not track
+        return False
+    if _tracing():
+        return False
+    if len(_seen) > 100_000:  # pragma: no cover - bound the bookkeeping
+        _seen.clear()
+    _seen.add(key)
+    _new_programs += 1
+    if _new_programs < CHECK_EVERY:
+        return False
+    _new_programs = 0
+    if trim_compilation_cache():
+        _seen.clear()  # every program compiles anew
+        return True
+    return False
+
+
+def program_key(*parts: Any) -> Any:
+    """A hashable key for :func:`note_program`: the tree structure of ``parts`` and the shape and
+    dtype of every array leaf (the identity of other leaves, e.g. functions)."""
+    leaves, treedef = jax.tree_util.tree_flatten(parts)
+
+    def signature(x):
+        if hasattr(x, "shape") and hasattr(x, "dtype"):
+            return tuple(x.shape), str(x.dtype)
+        if isinstance(x, (bool, int, float, complex, str, type(None))):
+            return x  # static under eqx.filter_jit: a new value compiles anew
+        return type(x), id(x)
+
+    return treedef, tuple(signature(x) for x in leaves)
+
+
+def enable_compilation_cache(
+    path: str | os.PathLike | None = None, *, min_compile_seconds: float = 0.5
+) -> str:
+    """Opt in to JAX's persistent compilation cache: compiled programs are written to ``path`` and
+    a later process (a script run again, a restarted notebook) loads them instead of compiling.
+
+    Compiling the larger programs (an interior-point solve, a gradient through a long rollout)
+    takes tens of seconds on a CPU; with the cache a new process pays that once per program and
+    machine. The cache is keyed by the program, the JAX version and the device, so stale entries
+    are never used. Call it once, before the first compilation.
+
+    Args:
+        path: cache directory (default ``$LDAP_JAX_CACHE`` or ``~/.cache/ldap_jax/xla``); created
+            if missing.
+        min_compile_seconds: only programs that took at least this long to compile are stored.
+
+    Returns:
+        The cache directory.
+
+    Example:
+        >>> import ldap_jax as lj
+        >>> lj.enable_compilation_cache()   # doctest: +SKIP
+    """
+    if path is None:
+        path = os.environ.get("LDAP_JAX_CACHE") or os.path.join(
+            os.path.expanduser("~"), ".cache", "ldap_jax", "xla"
+        )
+    path = os.fspath(path)
+    os.makedirs(path, exist_ok=True)
+    jax.config.update("jax_compilation_cache_dir", path)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_seconds))
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    return path

@@ -16,14 +16,32 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from ._numerics import materialise, sincos
+from ._validation import converter_field
 
 __all__ = ["AbstractControls", "Sinusoids", "Sampled", "Constant"]
 
 
 def _float_array(x: ArrayLike) -> Array:
-    x = jnp.asarray(x)
-    if not jnp.issubdtype(x.dtype, jnp.floating):
+    """Converter of the control fields: a floating array (integers converted), or a ``TypeError``
+    naming the field (``Sinusoids: 'amplitude' must be ...``)."""
+    value = x
+
+    def bad() -> TypeError:
+        cls, name = converter_field()
+        return TypeError(
+            f"{cls or 'controls'}: '{name or 'value'}' must be an array of real numbers, got {value!r}"
+        )
+
+    if isinstance(x, (str, bytes)) or x is None:
+        raise bad()
+    try:
+        x = jnp.asarray(x)
+    except (TypeError, ValueError) as err:
+        raise bad() from err
+    if jnp.issubdtype(x.dtype, jnp.integer) or x.dtype == jnp.bool_:
         x = x.astype(jnp.result_type(float))
+    if not jnp.issubdtype(x.dtype, jnp.floating):
+        raise bad()
     return x
 
 
@@ -36,6 +54,13 @@ class AbstractControls(eqx.Module):
 
     @abc.abstractmethod
     def __call__(self, t: ArrayLike) -> Float[Array, " n_channels"]: ...
+
+    def value_checks(self) -> tuple[tuple[str, Array], ...]:
+        """``(message, condition)`` pairs the control's values must satisfy (default: none
+        besides finiteness, which every run checks). Checked at construction when the values
+        are concrete (``ValueError``), and in every run when they are traced, where a violation
+        fails that trajectory with ``RESULTS.invalid_input``."""
+        return ()
 
     def derivative(self, t: ArrayLike) -> Float[Array, " n_channels"]:
         """``d/dt controls(t)`` by forward-mode autodiff."""
@@ -109,6 +134,7 @@ class Sinusoids(AbstractControls):
 
         return sample
 
+
 class Sampled(AbstractControls):
     """Control values at uniformly spaced times, linearly interpolated in between.
 
@@ -132,8 +158,14 @@ class Sampled(AbstractControls):
             raise ValueError(
                 f"Sampled: 'values' must have shape (K >= 2, n_channels), got {self.values.shape}"
             )
-        if _concrete(self.t_final, self.t0) and not bool(jnp.all(self.t_final > self.t0)):
-            raise ValueError(f"Sampled: 't_final' must exceed 't0', got t_final={self.t_final}, t0={self.t0}")
+        with jax.ensure_compile_time_eval():
+            for message, ok in self.value_checks():
+                if _concrete(ok) and not bool(jnp.all(ok)):
+                    raise ValueError(f"Sampled: {message}, got t_final={self.t_final}, t0={self.t0}")
+
+    def value_checks(self):
+        ok = jnp.isfinite(self.t_final) & jnp.isfinite(self.t0) & (self.t_final > self.t0)
+        return (("'t_final' must be finite and exceed 't0'", ok),)
 
     @property
     def n_channels(self) -> int:

@@ -118,7 +118,9 @@ class DiscreteDynamics(eqx.Module):
         c = self.stage_controls(u0, u0)
         return self.pack(self.integrator.init(system, self.h, q0, qdot0, c))
 
-    def step(self, x: Float[Array, " n"], u0: ArrayLike, u1: ArrayLike, k: ArrayLike = 0) -> Float[Array, " n"]:
+    def step(
+        self, x: Float[Array, " n"], u0: ArrayLike, u1: ArrayLike, k: ArrayLike = 0
+    ) -> Float[Array, " n"]:
         """``x_{k+1}`` from ``x_k`` and the control values at both ends of the step (``k`` is
         accepted for time-varying use; the dynamics are autonomous in ``k`` for open-loop
         controls, which enter only through ``u``)."""

@@ -86,5 +86,7 @@ def newton(
 
     z, (res, it) = jax.lax.custom_root(residual, z0, iterate, tangent_solve, has_aux=True)
     res = jax.lax.stop_gradient(res)
-    info = NewtonInfo(residual=res, iterations=jax.lax.stop_gradient(it).astype(jnp.int32), converged=res <= tol)
+    info = NewtonInfo(
+        residual=res, iterations=jax.lax.stop_gradient(it).astype(jnp.int32), converged=res <= tol
+    )
     return z, info

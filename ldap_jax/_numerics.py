@@ -9,7 +9,26 @@ import numpy as np
 from jax.ad_checkpoint import checkpoint_name
 from jaxtyping import Array
 
-__all__ = ["sincos", "SAVED", "saved", "materialise"]
+__all__ = ["sincos", "SAVED", "saved", "materialise", "plain"]
+
+import contextlib
+
+#: While True (inside :func:`plain`), the kernels use XLA's own sin and cos and no barriers: the
+#: plainest graph, which compiles much faster when it is differentiated twice (a solver's Hessians).
+_PLAIN = [False]
+
+
+@contextlib.contextmanager
+def plain():
+    """Trace the closed-form kernels as plain arithmetic (XLA's ``sin``/``cos``, no fusion barriers,
+    no reverse-mode names): for programs that differentiate them to second order, where the
+    compile time of the polynomial ``sincos`` and the barriers outweighs their run-time gain."""
+    _PLAIN.append(True)
+    try:
+        yield
+    finally:
+        _PLAIN.pop()
+
 
 # fdlibm __kernel_sin / __kernel_cos coefficients (|r| <= pi/4)
 _S = (
@@ -66,8 +85,15 @@ def _sincos_impl(x: Array) -> tuple[Array, Array]:
     return sin, cos
 
 
-@jax.custom_jvp
 def sincos(x: Array) -> tuple[Array, Array]:
+    """``(sin x, cos x)``: :func:`sincos_poly` in rollouts, XLA's own inside :func:`plain`."""
+    if _PLAIN[-1]:
+        return jnp.sin(x), jnp.cos(x)
+    return sincos_poly(x)
+
+
+@jax.custom_jvp
+def sincos_poly(x: Array) -> tuple[Array, Array]:
     """``(sin x, cos x)`` sharing one argument reduction, branch-free so XLA vectorises it.
 
     Accurate to about one ulp for ``|x| < 1.6e6`` (float64) or ``|x| < 6e3`` (float32): the
@@ -77,10 +103,10 @@ def sincos(x: Array) -> tuple[Array, Array]:
     return _sincos_impl(x)
 
 
-@sincos.defjvp
+@sincos_poly.defjvp
 def _sincos_jvp(primals, tangents):
     (x,), (dx,) = primals, tangents
-    s, c = sincos(x)
+    s, c = sincos_poly(x)
     return (s, c), (c * dx, -s * dx)
 
 
@@ -94,10 +120,14 @@ SAVED = "ldap_jax_saved"
 
 def saved(*values: Array) -> tuple[Array, ...]:
     """Tag ``values`` as kept for reverse mode (see :data:`SAVED`)."""
+    if _PLAIN[-1]:
+        return values
     return tuple(checkpoint_name(v, SAVED) for v in values)
 
 
 def materialise(*values: Array) -> tuple[Array, ...]:
     """Compute ``values`` once and keep them: without the barrier XLA's fusion pass duplicates
     transcendental values into every consumer fusion (measured: 5x the sin/cos work per step)."""
+    if _PLAIN[-1]:
+        return values
     return jax.lax.optimization_barrier(values)

@@ -46,7 +46,9 @@ class Policy(AbstractPolicy):
     def __init__(self, fn: Callable, n_channels: int):
         if not callable(fn):
             raise TypeError(f"Policy: 'fn' must be callable, got {type(fn)}")
-        if isinstance(n_channels, bool) or not isinstance(n_channels, int) or n_channels < 0:
+        if isinstance(n_channels, bool) or not isinstance(n_channels, int):
+            raise TypeError(f"Policy: 'n_channels' must be a non-negative integer, got {n_channels!r}")
+        if n_channels < 0:
             raise ValueError(f"Policy: 'n_channels' must be a non-negative integer, got {n_channels!r}")
         self.fn = fn
         self.channels = n_channels
@@ -76,6 +78,28 @@ class LinearPolicy(AbstractPolicy):
     gain: Array
     reference: Array | None = None
     times: Array | None = None
+
+    def __check_init__(self):
+        if not isinstance(self.feedforward, AbstractControls):
+            raise TypeError(
+                "LinearPolicy: 'feedforward' must be ldap_jax controls (e.g. lj.Sampled), "
+                f"got {type(self.feedforward)}"
+            )
+        n = self.feedforward.n_channels
+        shape = tuple(jnp.shape(self.gain))
+        # leading axes are allowed (a time-varying gain, or a batch for vmap): only the last two
+        # are checked, (channels, 2 d)
+        if len(shape) < 2 or shape[-2] != n or shape[-1] % 2:
+            raise ValueError(
+                f"LinearPolicy: 'gain' must have shape (..., {n}, 2 d) for {n} channels, got {shape}"
+            )
+        if self.reference is not None and jnp.shape(self.reference)[-1:] != shape[-1:]:
+            raise ValueError(
+                f"LinearPolicy: 'reference' must have {shape[-1]} columns (x = (q, qdot), like 'gain'), got "
+                f"shape {tuple(jnp.shape(self.reference))}"
+            )
+        if self.times is not None and self.reference is None:
+            raise ValueError("LinearPolicy: 'times' needs 'reference' (samples of x_ref at those times)")
 
     @property
     def n_channels(self) -> int:

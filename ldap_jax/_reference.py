@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import warnings
+from typing import Any
 
 import diffrax
 import equinox as eqx
@@ -11,10 +12,20 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
+from ._compilation_cache import note_program, program_key
 from ._controls import AbstractControls, Constant
 from ._results import RESULTS
-from ._validation import cast_floats, check_array, check_positive_int, check_scalar, input_result, is_concrete
-from ._validation import raise_if_concrete
+from ._validation import (
+    ArrayOrSequence,
+    cast_floats,
+    check_array,
+    check_positive_int,
+    check_positive_number,
+    check_scalar,
+    input_result,
+    is_concrete,
+    raise_if_concrete,
+)
 from .systems import AbstractSystem
 
 __all__ = ["reference", "Solution"]
@@ -45,24 +56,38 @@ class Solution(eqx.Module):
         return self.result != RESULTS.successful
 
 
-def _check_ts(ts: Array, t0: ArrayLike) -> None:
+def _check_ts(ts: Any, t0: ArrayLike) -> Array:
+    """``ts`` as a 1-d floating array, checked now where its values are known."""
+    if isinstance(ts, (str, bytes)) or ts is None:
+        raise TypeError(f"'ts' must be an array of times, got {ts!r}")
+    try:
+        ts = jnp.asarray(ts)
+    except (TypeError, ValueError) as err:
+        raise TypeError(f"'ts' must be an array of times, got {ts!r}") from err
+    if not (jnp.issubdtype(ts.dtype, jnp.floating) or jnp.issubdtype(ts.dtype, jnp.integer)):
+        raise TypeError(f"'ts' must be an array of real times, got dtype {ts.dtype}")
     if ts.ndim != 1 or ts.shape[0] < 1:
         raise ValueError(f"'ts' must be a non-empty 1-d array of times, got shape {ts.shape}")
     with jax.ensure_compile_time_eval():
-        if is_concrete((ts, t0)):
-            ts_np, t0_ = np.asarray(ts, float), float(np.asarray(t0))
-            if not np.all(np.isfinite(ts_np)) or not np.isfinite(t0_):
-                raise ValueError(f"'ts' and 't0' must be finite, got ts={ts_np}, t0={t0_}")
-            if np.any(np.diff(ts_np) < 0) or ts_np[0] < t0_:
-                raise ValueError(f"'ts' must be non-decreasing and start at or after t0={t0_}, got {ts_np}")
+        if is_concrete(ts):
+            ts_np = np.asarray(ts, float)
+            if not np.all(np.isfinite(ts_np)):
+                raise ValueError(f"'ts' must be finite, got {ts_np}")
+            if np.any(np.diff(ts_np) < 0):
+                raise ValueError(f"'ts' must be non-decreasing, got {ts_np}")
+            if is_concrete(t0):
+                t0_ = float(np.asarray(t0))
+                if np.isfinite(t0_) and ts_np[0] < t0_:
+                    raise ValueError(f"'ts' must start at or after t0={t0_}, got {ts_np}")
+    return ts
 
 
 def reference(
     system: AbstractSystem,
-    q0: ArrayLike,
-    qdot0: ArrayLike,
+    q0: ArrayOrSequence,
+    qdot0: ArrayOrSequence,
     controls: AbstractControls | None,
-    ts: ArrayLike,
+    ts: ArrayOrSequence,
     *,
     t0: ArrayLike = 0.0,
     rtol: float = 1e-11,
@@ -97,28 +122,33 @@ def reference(
             the result is ``invalid_input`` instead.
     """
     if not isinstance(system, AbstractSystem):
-        raise TypeError(f"'system' must be an ldap_jax system (e.g. lj.Car, lj.Snakeboard), got {type(system)}")
+        raise TypeError(
+            f"'system' must be an ldap_jax system (e.g. lj.Car, lj.Snakeboard), got {type(system)}"
+        )
     if controls is None:
         controls = Constant(jnp.zeros(system.n_controls, jnp.result_type(float)))
     if not isinstance(controls, AbstractControls):
-        raise TypeError(f"'controls' must be ldap_jax open-loop controls (e.g. lj.Sinusoids) or None, got {type(controls)}")
+        raise TypeError(
+            "'controls' must be ldap_jax open-loop controls (e.g. lj.Sinusoids) or None, "
+            f"got {type(controls)}"
+        )
     if controls.n_channels != system.n_controls:
         raise ValueError(
-            f"'controls' has {controls.n_channels} channels, {type(system).__name__} takes {system.n_controls}"
+            f"'controls' has {controls.n_channels} channels, "
+            f"{type(system).__name__} takes {system.n_controls}"
         )
     d = system.n_config
     q0 = check_array("q0", q0, (d,), f"for {type(system).__name__}")
     qdot0 = check_array("qdot0", qdot0, (d,), f"for {type(system).__name__}")
     t0 = check_scalar("t0", t0)
-    try:
-        ts = jnp.asarray(ts)
-    except TypeError as err:
-        raise TypeError(f"'ts' must be an array of times, got {ts!r}") from err
-    _check_ts(ts, t0)
-    for name, tol in (("rtol", rtol), ("atol", atol)):
-        if isinstance(tol, bool) or not isinstance(tol, (int, float)) or not (tol > 0 and np.isfinite(tol)):
-            raise ValueError(f"'{name}' must be a positive finite number, got {tol!r}")
+    ts = _check_ts(ts, t0)
+    rtol = check_positive_number("rtol", rtol)
+    atol = check_positive_number("atol", atol)
     max_steps = check_positive_int("max_steps", max_steps)
+    if solver is None:
+        solver = diffrax.Dopri8()
+    if not isinstance(solver, diffrax.AbstractSolver):
+        raise TypeError(f"'solver' must be a diffrax solver (e.g. diffrax.Dopri8()) or None, got {solver!r}")
     dtype = jnp.result_type(q0, qdot0)
     if dtype == jnp.float32 and not jax.config.jax_enable_x64:
         warnings.warn(
@@ -127,9 +157,28 @@ def reference(
             stacklevel=2,
         )
     raise_if_concrete(system, None, q0, qdot0, controls, t0, None, check_constraints)
+    note_program(
+        (
+            "reference",
+            program_key(system, q0, qdot0, controls, ts, solver),
+            rtol,
+            atol,
+            max_steps,
+            bool(check_constraints),
+        )
+    )
     return _reference(
-        system, q0, qdot0, controls, ts, jnp.asarray(t0), float(rtol), float(atol), solver or diffrax.Dopri8(),
-        max_steps, bool(check_constraints),
+        system,
+        q0,
+        qdot0,
+        controls,
+        ts,
+        jnp.asarray(t0),
+        rtol,
+        atol,
+        solver,
+        max_steps,
+        bool(check_constraints),
     )
 
 
@@ -141,7 +190,7 @@ def _reference(system, q0, qdot0, controls, ts, t0, rtol, atol, solver, max_step
     c0 = controls(t0)
     qdot0 = system.consistent_qdot(q0, qdot0, c0)
     ok_ts = jnp.all(jnp.isfinite(ts)) & jnp.all(jnp.diff(ts) >= 0) & (ts[0] >= t0)
-    initial = input_result(system, None, q0, qdot0, t0, None, check_constraints)
+    initial = input_result(system, None, q0, qdot0, t0, None, check_constraints, controls)
     valid = (initial == RESULTS.successful) & ok_ts & jnp.all(jnp.isfinite(c0))
     # an invalid member integrates a harmless problem (rest, a zero-length interval) so a vmapped
     # batch does not pay for it, and is reported as invalid
@@ -151,7 +200,7 @@ def _reference(system, q0, qdot0, controls, ts, t0, rtol, atol, solver, max_step
     ts_safe = jnp.where(valid, ts, t0)
 
     def vector_field(t, y, args):
-        return system.ode(y, controls(t))
+        return system.ode(y, jnp.where(valid, controls(t), 0.0))
 
     def nonfinite(t, y, args, **kwargs):
         return ~(jnp.all(jnp.isfinite(y[0])) & jnp.all(jnp.isfinite(y[1])))
@@ -183,7 +232,11 @@ def _reference(system, q0, qdot0, controls, ts, t0, rtol, atol, solver, max_step
         RESULTS.where(
             sol.result == d_res.max_steps_reached,
             RESULTS.max_steps_reached,
-            RESULTS.where((sol.result == d_res.event_occurred) & hit_singular & ~hit_nonfinite, RESULTS.singular, RESULTS.nonfinite),
+            RESULTS.where(
+                (sol.result == d_res.event_occurred) & hit_singular & ~hit_nonfinite,
+                RESULTS.singular,
+                RESULTS.nonfinite,
+            ),
         ),
     )
     result = RESULTS.where(valid, result, RESULTS.invalid_input)

@@ -19,9 +19,9 @@ class RESULTS(eqx.Enumeration):
 
     successful = ""
     nonfinite = (
-        "non-finite values (NaN or inf) in the state: the step is far too large for the motion, "
-        "or an input (initial state, control, parameter) is not finite. Reduce the step or check "
-        "the inputs."
+        "non-finite values (NaN or inf) in the state or in a diagnostic (energy, work, momentum): "
+        "the step is far too large for the motion, or an input (a control, a parameter) is so "
+        "large that the values overflow. Reduce the step or check the inputs' magnitudes."
     )
     singular = (
         "singular configuration: the reduced description breaks down (the snakeboard at "
@@ -39,15 +39,18 @@ class RESULTS(eqx.Enumeration):
         "reduce the step, or raise `divergence` if the growth is physical."
     )
     invalid_input = (
-        "an input is invalid: t_final <= t0, a non-finite initial state, qdot0 violating the "
-        "constraints, a physical parameter out of range (e.g. a non-positive mass, or I >= m l^2 "
-        "for the snakeboard) or alpha outside [0, 1]. It was found on traced values (inside "
-        "jit or vmap), so it is reported here for this trajectory instead of raised; call "
-        "simulate eagerly on this member to get the error naming the argument."
+        "an input is invalid: t_final <= t0 or a non-finite time (simulate), non-finite, decreasing "
+        "or early sample times ts (reference), a non-finite initial state, non-finite controls, "
+        "qdot0 violating the constraints, a physical parameter out of range (e.g. a non-positive "
+        "mass, or I >= m l^2 for the snakeboard) or alpha outside [0, 1]. It was found on traced "
+        "values (inside jit or vmap), so it is reported for this trajectory alone instead of "
+        "raised (every node is NaN); call simulate (or reference) eagerly on this member to get "
+        "the error naming the argument."
     )
     max_steps_reached = (
         "the adaptive solver reached max_steps before the final time (lj.reference): the "
-        "problem is stiff, singular or the tolerances are too tight for the budget."
+        "problem is stiff or nearly singular, the interval ts is very long, or the tolerances are "
+        "too tight for the budget. Raise max_steps, loosen rtol/atol or shorten ts."
     )
 
 

@@ -24,7 +24,6 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ._controls import AbstractControls
 from ._numerics import SAVED, materialise, saved
 from ._results import RESULTS, first_failure
 from .integrators import AbstractIntegrator
@@ -73,7 +72,8 @@ def check_save(save: Any, n_steps: int) -> SavePlan:
         idx = [int(i) for i in np.asarray(save).ravel()]
         if not idx or any(i < 0 or i > n_steps for i in idx) or any(b <= a for a, b in zip(idx, idx[1:])):
             raise ValueError(
-                f"'save': node indices must be strictly increasing integers in [0, n_steps={n_steps}], got {save!r}"
+                "'save': node indices must be strictly increasing integers in "
+                f"[0, n_steps={n_steps}], got {save!r}"
             )
         return SavePlan(1, tuple(idx))
     raise ValueError(f"'save' must be 'all', 'final', a positive stride or node indices, got {save!r}")
@@ -193,7 +193,9 @@ def rollout(
                 obs_new = integrator.observe(system, new_state, node_controls(k + 1, c_stage))
             if diagnostics:
                 work = carry.work + 0.5 * h * (carry.obs.power + obs_new.power)
-                abs_work = carry.abs_work + 0.5 * jnp.abs(h) * (jnp.abs(carry.obs.power) + jnp.abs(obs_new.power))
+                abs_work = carry.abs_work + 0.5 * jnp.abs(h) * (
+                    jnp.abs(carry.obs.power) + jnp.abs(obs_new.power)
+                )
                 ok_diag = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in obs_new]))
                 step_result = RESULTS.where(
                     (step_result == RESULTS.successful) & ~ok_diag, RESULTS.nonfinite, step_result
@@ -229,7 +231,9 @@ def rollout(
         mask = jnp.where(carry.result == RESULTS.successful, 1.0, jnp.nan).astype(dtype)
         obs = _masked(carry.obs, mask)
         out = (obs, carry.work * mask, carry.residual, carry.converged, carry.iterations)
-        return carry._replace(residual=zero, converged=jnp.ones((), bool), iterations=jnp.zeros((), jnp.int32)), out
+        return carry._replace(
+            residual=zero, converged=jnp.ones((), bool), iterations=jnp.zeros((), jnp.int32)
+        ), out
 
     stride = plan.stride
     n_seg = n_steps // stride
@@ -319,4 +323,3 @@ def _assemble(carry, outs, obs0, plan, t0, h, n_steps) -> RolloutOutput:
         result=carry.result,
         failure_index=carry.failure_index,
     )
-

@@ -10,14 +10,17 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from ._compilation_cache import note_program, program_key
 from ._controls import AbstractControls, Constant
-from ._policy import AbstractPolicy
+from ._policy import AbstractPolicy, LinearPolicy
 from ._results import RESULTS
 from ._rollout import check_checkpoint, check_save, rollout
 from ._validation import (
+    ArrayOrSequence,
     cast_floats,
     check_array,
     check_positive_int,
+    check_positive_number,
     check_scalar,
     input_result,
     raise_if_concrete,
@@ -66,12 +69,12 @@ class Trajectory(eqx.Module):
     failure_index: Int[Array, ""]
 
     @property
-    def failed(self) -> Bool[Array, ""]:
+    def failed(self) -> Bool[Array, "*batch"]:
         """True where the integration failed (see :attr:`result`)."""
         return self.result != RESULTS.successful
 
     @property
-    def energy_balance(self) -> Float[Array, " M"]:
+    def energy_balance(self) -> Float[Array, "*batch M"]:
         """``E_k - E_0 - W_k``: zero for the exact flow (work-energy balance)."""
         if self.energy is None or self.work is None:
             raise ValueError("energy_balance needs the diagnostics (simulate(..., diagnostics=True))")
@@ -80,8 +83,8 @@ class Trajectory(eqx.Module):
 
 def simulate(
     system: AbstractSystem,
-    q0: ArrayLike,
-    qdot0: ArrayLike,
+    q0: ArrayOrSequence,
+    qdot0: ArrayOrSequence,
     controls: AbstractControls | AbstractPolicy | None = None,
     *,
     t_final: ArrayLike,
@@ -132,8 +135,10 @@ def simulate(
             an integer chunk length.
         divergence: fail with ``RESULTS.diverged`` once ``|E_k - E_0 - W_k|`` exceeds
             ``divergence * (|E_0| + int |<f, rdot>| dt)`` (the energy balance broken by orders of
-            magnitude: a numerically unstable run); ``None`` disables it. Checked at every node
-            when ``diagnostics`` is on.
+            magnitude: a numerically unstable run); ``None`` (or ``inf``) disables it. Checked at
+            every node when ``diagnostics`` is on (with ``diagnostics=False`` only non-finite
+            states are caught). Independently, a non-finite energy, work, momentum or
+            constraint residual at any node fails the run with ``RESULTS.nonfinite``.
         throw: raise (inside jit, via ``eqx.error_if``) if the integration failed.
         check_constraints: check that ``qdot0`` satisfies the constraints.
 
@@ -155,9 +160,13 @@ def simulate(
     """
     integrator = RDP() if integrator is None else integrator
     if not isinstance(system, AbstractSystem):
-        raise TypeError(f"'system' must be an ldap_jax system (e.g. lj.Car, lj.Snakeboard), got {type(system)}")
+        raise TypeError(
+            f"'system' must be an ldap_jax system (e.g. lj.Car, lj.Snakeboard), got {type(system)}"
+        )
     if not isinstance(integrator, AbstractIntegrator):
-        raise TypeError(f"'integrator' must be an ldap_jax integrator (e.g. lj.RDP()), got {type(integrator)}")
+        raise TypeError(
+            f"'integrator' must be an ldap_jax integrator (e.g. lj.RDP()), got {type(integrator)}"
+        )
     if controls is None:
         controls = Constant(jnp.zeros(system.n_controls, jnp.result_type(float)))
     if not isinstance(controls, (AbstractControls, AbstractPolicy)):
@@ -173,12 +182,14 @@ def simulate(
     d = system.n_config
     q0 = check_array("q0", q0, (d,), f"for {type(system).__name__}")
     qdot0 = check_array("qdot0", qdot0, (d,), f"for {type(system).__name__}")
+    if isinstance(controls, AbstractPolicy):
+        _check_policy(controls, q0, qdot0)
     n_steps = check_positive_int("n_steps", n_steps)
     t_final, t0 = check_scalar("t_final", t_final), check_scalar("t0", t0)
     plan = check_save(save, n_steps)
     checkpoint = check_checkpoint(checkpoint)
-    if divergence is not None and not (isinstance(divergence, (int, float)) and divergence > 0):
-        raise ValueError(f"'divergence' must be a positive number or None, got {divergence!r}")
+    if divergence is not None:
+        divergence = check_positive_number("divergence", divergence, allow_inf=True)
     dtype = jnp.result_type(q0, qdot0)
     if dtype == jnp.float32 and not jax.config.jax_enable_x64:
         warnings.warn(
@@ -187,6 +198,18 @@ def simulate(
             stacklevel=2,
         )
     raise_if_concrete(system, integrator, q0, qdot0, controls, t0, t_final, check_constraints)
+    settings = dict(
+        n_steps=n_steps,
+        plan=plan,
+        diagnostics=bool(diagnostics),
+        checkpoint=checkpoint,
+        divergence=divergence,
+        throw=bool(throw),
+        check_constraints=bool(check_constraints),
+    )
+    # a long session that keeps asking for new programs (a new n_steps compiles anew) trims JAX's
+    # caches before it exhausts the process's memory mappings (see lj.trim_compilation_cache)
+    note_program(("simulate", program_key(system, q0, qdot0, controls, integrator), tuple(settings.items())))
     return _simulate(
         system,
         q0,
@@ -195,19 +218,42 @@ def simulate(
         jnp.asarray(t0),  # arrays, not Python floats: a new value must not recompile
         jnp.asarray(t_final),
         integrator,
-        n_steps=n_steps,
-        plan=plan,
-        diagnostics=bool(diagnostics),
-        checkpoint=checkpoint,
-        divergence=None if divergence is None else float(divergence),
-        throw=bool(throw),
-        check_constraints=bool(check_constraints),
+        **settings,
     )
+
+
+def _check_policy(policy: AbstractPolicy, q0: Array, qdot0: Array) -> None:
+    """A feedback policy must map ``(t, q, qdot)`` to ``(n_channels,)`` (checked on shapes only)."""
+    d = q0.shape[0]
+    if isinstance(policy, LinearPolicy) and jnp.shape(policy.gain)[-1] != 2 * d:
+        raise ValueError(
+            f"'controls': the LinearPolicy gain must have 2 d = {2 * d} columns (x = (q, qdot)), "
+            f"got shape {tuple(jnp.shape(policy.gain))}"
+        )
+    out = eqx.filter_eval_shape(lambda p, t, q, qd: p(t, q, qd), policy, jnp.zeros((), q0.dtype), q0, qdot0)
+    if not hasattr(out, "shape") or tuple(out.shape) != (policy.n_channels,):
+        raise ValueError(
+            f"'controls': the policy must return an array of shape ({policy.n_channels},) (its n_channels), "
+            f"got {getattr(out, 'shape', out)}"
+        )
 
 
 @eqx.filter_jit
 def _simulate(
-    system, q0, qdot0, controls, t0, t_final, integrator, *, n_steps, plan, diagnostics, checkpoint, divergence, throw,
+    system,
+    q0,
+    qdot0,
+    controls,
+    t0,
+    t_final,
+    integrator,
+    *,
+    n_steps,
+    plan,
+    diagnostics,
+    checkpoint,
+    divergence,
+    throw,
     check_constraints,
 ):
     dtype = jnp.result_type(q0, qdot0)
@@ -217,7 +263,7 @@ def _simulate(
     h = (t_final - t0) / n_steps
     c0 = controls(t0, q0, qdot0) if isinstance(controls, AbstractPolicy) else controls(t0)
     qdot0 = system.consistent_qdot(q0, qdot0, c0)
-    initial = input_result(system, integrator, q0, qdot0, t0, t_final, check_constraints)
+    initial = input_result(system, integrator, q0, qdot0, t0, t_final, check_constraints, controls)
     out = rollout(
         system,
         integrator,
@@ -250,4 +296,3 @@ def _simulate(
     if throw:
         traj = out.result.error_if(traj, out.result != RESULTS.successful)
     return traj
-

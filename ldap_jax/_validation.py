@@ -9,6 +9,10 @@ reported per trajectory as a result code (:data:`~ldap_jax.RESULTS` ``invalid_in
 
 from __future__ import annotations
 
+import dataclasses
+import numbers
+import sys
+from collections.abc import Sequence
 from typing import Any
 
 import equinox as eqx
@@ -20,6 +24,7 @@ from jaxtyping import Array, ArrayLike
 from ._results import RESULTS
 
 __all__ = [
+    "ArrayOrSequence",
     "check_array",
     "check_positive_int",
     "check_scalar",
@@ -28,9 +33,16 @@ __all__ = [
     "raise_if_concrete",
     "input_result",
     "constraint_tolerance",
+    "converter_field",
+    "check_positive_number",
+    "nonfinite_leaves",
 ]
 
 _SUPPORTED = (np.dtype(np.float32), np.dtype(np.float64))
+
+#: An array argument of the public API: a JAX or NumPy array, a number, or a (nested) Python
+#: sequence of numbers (converted with ``jnp.asarray``; :func:`check_array` names a bad one).
+ArrayOrSequence = ArrayLike | Sequence[Any]
 
 
 def is_concrete(tree: Any) -> bool:
@@ -39,13 +51,16 @@ def is_concrete(tree: Any) -> bool:
 
 
 def check_positive_int(name: str, x: Any) -> int:
-    """``x`` as a Python int >= 1, or a ``ValueError`` naming ``name``."""
-    if isinstance(x, bool) or not isinstance(x, (int, np.integer)) or x < 1:
+    """``x`` as a Python int >= 1, or a ``TypeError`` (not an integer: a float, a bool, a string)
+    or ``ValueError`` (< 1) naming ``name``."""
+    if isinstance(x, bool) or not isinstance(x, (int, np.integer)):
+        raise TypeError(f"'{name}' must be a positive integer, got {x!r}")
+    if x < 1:
         raise ValueError(f"'{name}' must be a positive integer, got {x!r}")
     return int(x)
 
 
-def check_array(name: str, x: ArrayLike, shape: tuple[int, ...], context: str = "") -> Array:
+def check_array(name: str, x: Any, shape: tuple[int, ...], context: str = "") -> Array:
     """``x`` as a float32/float64 array of ``shape`` (lists and integer arrays are converted), or
     a ``ValueError``/``TypeError`` naming ``name``."""
     if isinstance(x, (str, bytes)):
@@ -59,17 +74,81 @@ def check_array(name: str, x: ArrayLike, shape: tuple[int, ...], context: str = 
     if np.dtype(x.dtype) not in _SUPPORTED:
         raise ValueError(f"'{name}' must be float32 or float64, got dtype {x.dtype}")
     if x.shape != shape:
-        raise ValueError(f"'{name}' must have shape {shape}{(' ' + context) if context else ''}, got {x.shape}")
+        raise ValueError(
+            f"'{name}' must have shape {shape}{(' ' + context) if context else ''}, got {x.shape}"
+        )
     return x
 
 
 def check_scalar(name: str, x: ArrayLike) -> ArrayLike:
-    """``x`` unchanged if it is a real scalar (Python number or 0-d array), else a ``ValueError``."""
-    if isinstance(x, (str, bytes)) or jnp.ndim(x) != 0:
+    """``x`` unchanged if it is a real scalar (Python number or 0-d array), else a ``TypeError``
+    (not a number) or ``ValueError`` (not a scalar)."""
+    if isinstance(x, (str, bytes)) or x is None:
+        raise TypeError(f"'{name}' must be a real number, got {x!r}")
+    try:
+        ndim = jnp.ndim(x)
+    except TypeError as err:
+        raise TypeError(f"'{name}' must be a real number, got {x!r}") from err
+    if ndim != 0:
         raise ValueError(f"'{name}' must be a scalar, got {x!r}")
-    if not (jnp.issubdtype(jnp.result_type(x), jnp.floating) or jnp.issubdtype(jnp.result_type(x), jnp.integer)):
+    if not (
+        jnp.issubdtype(jnp.result_type(x), jnp.floating) or jnp.issubdtype(jnp.result_type(x), jnp.integer)
+    ):
         raise ValueError(f"'{name}' must be a real number, got {x!r}")
     return x
+
+
+def check_positive_number(name: str, x: Any, *, allow_inf: bool = False) -> float:
+    """``x`` as a Python float > 0 (finite unless ``allow_inf``), or a ``TypeError`` (not a real
+    number: a string, a bool, an array) / ``ValueError`` (out of range) naming ``name``."""
+    if isinstance(x, bool) or not isinstance(x, numbers.Real):
+        raise TypeError(f"'{name}' must be a positive number, got {x!r}")
+    x = float(x)
+    if not (x > 0 and (allow_inf or np.isfinite(x))):
+        raise ValueError(f"'{name}' must be a positive{'' if allow_inf else ' finite'} number, got {x!r}")
+    return x
+
+
+def converter_field(max_depth: int = 8) -> tuple[str | None, str | None]:
+    """``(class name, field name)`` of the ``eqx.field(converter=...)`` being run, or ``None``s.
+
+    Equinox calls a field's converter with the value alone; to name the argument in an error the
+    converter reads the field from the caller's frame (equinox's ``Module.__call__`` holds it as
+    the local ``f``, a ``dataclasses.Field``). Best effort: ``(None, None)`` if not found.
+    """
+    try:
+        frame = sys._getframe(2)
+    except ValueError:  # pragma: no cover
+        return None, None
+    for _ in range(max_depth):
+        if frame is None:
+            break
+        field = frame.f_locals.get("f")
+        if isinstance(field, dataclasses.Field):
+            cls = frame.f_locals.get("cls")
+            return (getattr(cls, "__name__", None), field.name)
+        frame = frame.f_back
+    return None, None
+
+
+def nonfinite_leaves(tree: Any) -> list[str]:
+    """Paths (``".amplitude"``) of the concrete floating array leaves of ``tree`` holding a NaN or
+    an infinity (traced leaves are skipped)."""
+    bad = []
+    for path, x in jax.tree_util.tree_flatten_with_path(tree)[0]:
+        if eqx.is_inexact_array(x) and is_concrete(x):
+            if not bool(np.all(np.isfinite(np.asarray(x)))):
+                bad.append(jax.tree_util.keystr(path) or "(value)")
+    return bad
+
+
+def _finite_leaves(tree: Any):
+    """True when every floating array leaf of ``tree`` is finite (a traced boolean)."""
+    ok = jnp.asarray(True)
+    for x in jax.tree_util.tree_leaves(tree):
+        if eqx.is_inexact_array(x):
+            ok = ok & jnp.all(jnp.isfinite(x))
+    return ok
 
 
 def cast_floats(tree: Any, dtype: Any) -> Any:
@@ -89,15 +168,28 @@ def _constraint_violation(system, q0, qdot0) -> Array:
 
 
 def raise_if_concrete(system, integrator, q0, qdot0, controls, t0, t_final, check_constraints: bool) -> None:
-    """The value checks, raised now for every input whose value is known at trace time."""
+    """The value checks, raised now (``ValueError`` naming the argument) for every input whose
+    value is known at trace time (concrete, even inside an outer ``jit`` over other arguments)."""
     with jax.ensure_compile_time_eval():
-        if t_final is not None and is_concrete((t0, t_final)):
-            t0_, tf_ = float(np.asarray(t0)), float(np.asarray(t_final))
-            if not np.isfinite(t0_) or not np.isfinite(tf_) or not tf_ > t0_:
-                raise ValueError(f"'t_final' must be finite and exceed t0 (a positive step), got t_final={t_final}, t0={t0}")
+        if is_concrete(t0) and not np.isfinite(float(np.asarray(t0))):
+            raise ValueError(f"'t0' must be finite, got {t0}")
+        if t_final is not None and is_concrete(t_final):
+            tf_ = float(np.asarray(t_final))
+            if not np.isfinite(tf_):
+                raise ValueError(f"'t_final' must be finite, got {t_final}")
+            if is_concrete(t0) and not tf_ > float(np.asarray(t0)):
+                raise ValueError(
+                    f"'t_final' must exceed t0 (a positive step), got t_final={t_final}, t0={t0}"
+                )
         for name, x in (("q0", q0), ("qdot0", qdot0)):
             if is_concrete(x) and not bool(np.all(np.isfinite(np.asarray(x)))):
                 raise ValueError(f"'{name}' must be finite, got {np.asarray(x)}")
+        bad = nonfinite_leaves(controls)
+        if bad:
+            raise ValueError(
+                f"'controls' must be finite: {type(controls).__name__} holds NaN or infinite values in "
+                f"{', '.join(bad)}"
+            )
         from ._policy import AbstractPolicy
 
         if check_constraints and is_concrete((system, q0, qdot0, controls, t0)):
@@ -110,19 +202,27 @@ def raise_if_concrete(system, integrator, q0, qdot0, controls, t0, t_final, chec
                 viol, tol = float(_constraint_violation(system, q0, qd)), float(constraint_tolerance(qd))
                 if not viol <= tol:
                     raise ValueError(
-                        f"'qdot0' violates the constraints: |omega(q0) qdot0| = {viol:.3e} > {tol:.1e}. Build it "
+                        f"'qdot0' violates the constraints: |omega(q0) qdot0| = {viol:.3e} > {tol:.1e}. "
+                        "Build it "
                         f"on the constraint distribution, e.g. system.qdot_from_velocities(q0, v0, u_kin)."
                     )
 
 
-def input_result(system, integrator, q0, qdot0, t0, t_final, check_constraints: bool) -> RESULTS:
-    """The value checks on traced values, as a result code (``invalid_input`` or ``successful``).
-    ``t_final=None`` skips the time check."""
+def input_result(
+    system, integrator, q0, qdot0, t0, t_final, check_constraints: bool, controls: Any = None
+) -> RESULTS:
+    """The value checks on traced values, as a result code (``invalid_input`` or ``successful``):
+    finite times with ``t_final > t0``, a finite initial state, finite controls (every floating
+    leaf) passing their ``value_checks``, the system's parameter checks, ``alpha`` in [0, 1] and,
+    with ``check_constraints``,
+    ``qdot0`` on the constraints. ``t_final=None`` skips the time check."""
     ok = jnp.isfinite(t0)
     if t_final is not None:
         ok = ok & jnp.isfinite(t_final) & (t_final > t0)
-    ok = ok & jnp.all(jnp.isfinite(q0)) & jnp.all(jnp.isfinite(qdot0))
+    ok = ok & jnp.all(jnp.isfinite(q0)) & jnp.all(jnp.isfinite(qdot0)) & _finite_leaves(controls)
     for _, cond in system.parameter_checks():
+        ok = ok & jnp.all(cond)
+    for _, cond in getattr(controls, "value_checks", lambda: ())():
         ok = ok & jnp.all(cond)
     alpha = getattr(integrator, "alpha", None)
     if alpha is not None:

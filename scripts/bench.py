@@ -1,26 +1,28 @@
-"""Benchmarks: throughput, diffrax peers, work-precision, gradient cost, memory, compile time.
+"""Benchmarks of the integrators: throughput, compiled C, diffrax peers, work-precision (10 s and
+10 min), orders, energy, gradient cost, memory, compile times.
 
-Writes ``OUT/bench.json``, ``OUT/bench.md`` and ``OUT/work_precision.png``. Every timing is the
-median/min/max of several repeats after compilation (wall clock; the process CPU time is
-recorded too: on a shared machine it is the better estimate of the work). ``--quick`` runs in
-under 3 minutes on 2 cores; the full run uses the sizes of the targets (B = 1000, N = 1000
-everywhere, denser sweeps).
+    python scripts/bench.py --quick --out results     # part of `make demo`, a few minutes
+    python scripts/bench.py --out results             # the full sizes (B = N = 1000, dense sweeps)
 
-    python scripts/bench.py --quick --out results
+Writes ``OUT/bench.json``, ``OUT/bench.md``, ``OUT/work_precision.png`` (10 s and 10 min). Every
+timing is the minimum of several repeats after compilation (wall clock; the process CPU time is
+kept too), all ratios are measured in the same run. Optimal control is benchmarked by
+``scripts/bench_control.py``.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import platform
 import time
+from collections.abc import Callable
 
 # One XLA host device per core, so the headline is also measured with the batch sharded across
-# cores (one program per core, as ``ldap_jax.sweeps`` runs the study), next to the default single
-# device (whose loop fusions XLA splits over its intra-op thread pool, with a barrier per fusion).
-# Set before jax is imported; everything else here runs on the first device as usual.
+# cores (one program per core, as the study runs), next to the default single device. Set before
+# jax is imported; everything else here runs on the first device as usual.
 if "xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = (
         os.environ.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={os.cpu_count() or 1}"
@@ -35,36 +37,67 @@ import jax.numpy as jnp
 import numpy as np
 
 import ldap_jax as lj
-from ldap_jax import sweeps
+from ldap_jax import study
 
-SYSTEMS = {
-    "car": lj.Car(m=1.0, I=0.1, K=0.2, rho=0.1, l=0.5),
-    "snakeboard": lj.Snakeboard(m=1.0, l=0.5, I=0.05, J=0.02),
+SYSTEMS = {"car": lj.Car(), "snakeboard": lj.Snakeboard()}
+INTEGRATORS: dict[str, Callable[[], lj.integrators.AbstractIntegrator]] = {
+    "RDP2": lambda: lj.RDP(),
+    "RDP2 cayley": lambda: lj.RDP(retraction="cayley"),
+    "RDP4": lambda: lj.RDP(order=4),
+    "RDP6": lambda: lj.RDP(order=6),
+    "RDP6 cayley": lambda: lj.RDP(order=6, retraction="cayley"),
+    "RK2": lj.RK2,
+    "RK4": lj.RK4,
+    "GNI": lj.GNI,
+    "DLA": lj.DLA,
 }
 
 
-def integrators():
-    out = {
-        "RDP(exp)": lj.RDP(alpha=0.5, retraction="exp"),
-        "RDP(cayley)": lj.RDP(alpha=0.5, retraction="cayley"),
-        "RK2": lj.RK2(),
-        "RK4": lj.RK4(),
-    }
-    for name in ("DLA", "GNI"):  # added by other developers; picked up when present
-        if hasattr(lj, name):
-            out[name] = getattr(lj, name)()
-    return out
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """Sizes of a run (``--quick`` shrinks them)."""
+
+    quick: bool = False
+    repeats: int = 5
+    batch: int = 1000
+    steps: int = 1000
+    throughput_batch: int = 1000
+    grad_batch: int = 1000
+    mem_steps: int = 10_000
+    memory_batch: int = 1000
+    memory_steps: int = 4000
+    wp_maneuvers: int = 256
+    wp_steps_10s: tuple[int, ...] = (10, 20, 40, 80, 160, 320, 640, 1280, 2560)
+    wp_steps_600s: tuple[int, ...] = (250, 500, 1000, 2000, 4000, 8000)
+    wp_tols: tuple[float, ...] = (1e-3, 1e-4, 1e-5, 1e-6, 1e-7, 1e-8, 1e-9, 1e-10)
+    order_steps: tuple[int, ...] = (8, 16, 32)
+    energy_steps: int = 100_000
+
+    @staticmethod
+    def for_run(quick: bool, repeats: int | None) -> Config:
+        if not quick:
+            return Config(repeats=repeats or 5)
+        return Config(
+            quick=True,
+            repeats=repeats or 2,
+            throughput_batch=200,
+            grad_batch=100,
+            memory_batch=100,
+            wp_maneuvers=32,
+            wp_steps_10s=(10, 20, 40, 80, 160, 640),
+            wp_steps_600s=(500, 2000, 8000),
+            wp_tols=(1e-4, 1e-7, 1e-10),
+            energy_steps=20_000,
+        )
 
 
 def maneuvers(system, n, seed=0, dtype=jnp.float64):
-    keys = jax.random.split(jax.random.PRNGKey(seed), n)
-    q0, qdot0, ctl = jax.vmap(system.sample_maneuver)(keys)
-    cast = lambda x: x.astype(dtype)  # noqa: E731
-    return cast(q0), cast(qdot0), jax.tree_util.tree_map(cast, ctl)
+    q0, qdot0, ctl = study.sample_maneuvers(system, n, seed)
+    return jax.tree_util.tree_map(lambda x: x.astype(dtype), (q0, qdot0, ctl))
 
 
 def timeit(fn, *args, repeats=3):
-    """Compile (first call), then ``repeats`` timed calls: dict of wall/cpu statistics."""
+    """Compile (first call), then ``repeats`` timed calls: wall/cpu statistics."""
     t = time.perf_counter()
     jax.block_until_ready(fn(*args))
     first = time.perf_counter() - t
@@ -75,15 +108,14 @@ def timeit(fn, *args, repeats=3):
         wall.append(time.perf_counter() - t)
         cpu.append(time.process_time() - c)
     return {
-        "median": float(np.median(wall)),
         "min": float(np.min(wall)),
-        "max": float(np.max(wall)),
+        "median": float(np.median(wall)),
         "cpu_min": float(np.min(cpu)),
         "first_call": first,
     }
 
 
-def rollout_fn(system, integrator, n_steps, t_final=10.0, fast_path=True, what="q"):
+def rollout_fn(system, integrator, n_steps, t_final=10.0, *, save="final", diagnostics=False):
     def one(q0, qdot0, ctl):
         traj = lj.simulate(
             system,
@@ -94,37 +126,192 @@ def rollout_fn(system, integrator, n_steps, t_final=10.0, fast_path=True, what="
             n_steps=n_steps,
             integrator=integrator,
             check_constraints=False,
-            fast_path=fast_path,
+            save=save,
+            diagnostics=diagnostics,
         )
-        return traj if what == "traj" else traj.q
+        return traj if diagnostics else traj.q
 
     return jax.jit(jax.vmap(one))
 
 
-# ------------------------------------------------------------------ diffrax peers
-class _RK4(diffrax.AbstractERK):
-    """Classical RK4 as a diffrax ERK (diffrax ships no plain RK4; no error estimate)."""
+def _terminal_loss(system, q0, qdot0, ctl, n, checkpoint):
+    """Sum over the batch of ``|(x_N, y_N)|^2``: the loss whose gradient is timed."""
 
-    tableau = diffrax.ButcherTableau(
-        c=np.array([0.5, 0.5, 1.0]),
-        b_sol=np.array([1 / 6, 1 / 3, 1 / 3, 1 / 6]),
-        b_error=np.zeros(4),
-        a_lower=(np.array([0.5]), np.array([0.0, 0.5]), np.array([0.0, 0.0, 1.0])),
+    def one(a, b, c):
+        q = lj.simulate(
+            system,
+            a,
+            b,
+            c,
+            t_final=10.0,
+            n_steps=n,
+            check_constraints=False,
+            checkpoint=checkpoint,
+            save="final",
+            diagnostics=False,
+        ).q
+        return jnp.sum(q[-1, :2] ** 2)
+
+    return jnp.sum(jax.vmap(one)(q0, qdot0, ctl))
+
+
+# ------------------------------------------------------------------------------------ sections
+def headline(cfg: Config, log) -> list[dict]:
+    """Snakeboard, RDP (order 2), float64, B x N: positions only, the whole trajectory with its
+    diagnostics, and a gradient of a terminal cost; on one device and sharded over every device."""
+    system = SYSTEMS["snakeboard"]
+    b, n = cfg.batch, cfg.steps
+    data = maneuvers(system, b)
+    layouts = [("1 device", data)]
+    if jax.device_count() > 1:
+        layouts.append(
+            (f"sharded over {jax.device_count()} devices", study.shard_batch(data, study.device_mesh())[0])
+        )
+    rows = []
+    for layout, (q0, qdot0, ctl) in layouts:
+        row = dict(layout=layout, B=b, N=n)
+        st = timeit(rollout_fn(system, lj.RDP(), n), q0, qdot0, ctl, repeats=cfg.repeats)
+        row["steps_per_s_q"] = b * n / st["min"]
+        st = timeit(
+            rollout_fn(system, lj.RDP(), n, save="all", diagnostics=True), q0, qdot0, ctl, repeats=cfg.repeats
+        )
+        row["steps_per_s_traj"] = b * n / st["min"]
+        fwd = jax.jit(lambda c, q0=q0, qdot0=qdot0: _terminal_loss(system, q0, qdot0, c, n, False))
+        grad = jax.jit(jax.grad(lambda c, q0=q0, qdot0=qdot0: _terminal_loss(system, q0, qdot0, c, n, False)))
+        st_f, st_g = timeit(fwd, ctl, repeats=cfg.repeats), timeit(grad, ctl, repeats=cfg.repeats)
+        row.update(forward_s=st_f["min"], grad_s=st_g["min"], grad_ratio=st_g["min"] / st_f["min"])
+        rows.append(row)
+        log(
+            f"  {layout}: {row['steps_per_s_q']:.3g} steps/s (positions), {row['steps_per_s_traj']:.3g} "
+            f"(trajectory), gradient/forward {row['grad_ratio']:.2f}"
+        )
+    return rows
+
+
+C_SOURCE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "c", "rdp_snakeboard.c")
+
+
+def compiled_c(cfg: Config, headline_rows, log) -> list[dict]:
+    """The same snakeboard RDP rollout (alpha = 1/2, exp, positions only) in C, compiled here with
+    ``cc -O3 -march=native -ffast-math -fopenmp``: a scalar loop per trajectory and a loop
+    vectorised across trajectories, on one thread and on every core. Same maneuvers and initial
+    momenta as ours; the positions must agree with ``lj.simulate`` to round-off."""
+    import ctypes
+    import shutil
+    import subprocess
+    import tempfile
+
+    cc = shutil.which(os.environ.get("CC", "cc")) or shutil.which("gcc")
+    if cc is None:
+        log("  no C compiler: skipped")
+        return []
+    lib_path = os.path.join(tempfile.mkdtemp(prefix="ldap_jax_bench_"), "librdp.so")
+    subprocess.run(
+        [
+            cc,
+            "-O3",
+            "-march=native",
+            "-ffast-math",
+            "-fopenmp",
+            "-shared",
+            "-fPIC",
+            C_SOURCE,
+            "-o",
+            lib_path,
+            "-lm",
+        ],
+        check=True,
     )
-    interpolation_cls = diffrax.ThirdOrderHermitePolynomialInterpolation.from_k
+    lib = ctypes.CDLL(lib_path)
+    system = SYSTEMS["snakeboard"]
+    b, n, t_final = cfg.batch, cfg.steps, 10.0
+    h = t_final / n
+    q0, qdot0, ctl = maneuvers(system, b)
+    st = jax.vmap(lambda a, v: lj.RDP().init(system, jnp.asarray(h), a, v, None))(q0, qdot0)
+    init = np.ascontiguousarray(
+        np.stack(
+            [q0[:, 2], q0[:, 0], q0[:, 1], q0[:, 3], q0[:, 4], st.pu[0], st.pu[1], st.mu[0], st.mu[1]], 1
+        ),
+        np.float64,
+    )
+    ctl_np = np.ascontiguousarray(np.stack([ctl.amplitude, ctl.frequency, ctl.phase], 1), np.float64)
+    q = np.zeros((b, n + 1, 5))
+    ptr, dbl = ctypes.POINTER(ctypes.c_double), ctypes.c_double
+    call_args = (
+        ctypes.c_int(b),
+        ctypes.c_int(n),
+        ctypes.c_int(ctl_np.shape[-1]),
+        dbl(h),
+        *(dbl(float(getattr(system, k))) for k in ("m", "l", "I", "J")),
+        init.ctypes.data_as(ptr),
+        ctl_np.ctypes.data_as(ptr),
+        q.ctypes.data_as(ptr),
+    )
+    ours = np.asarray(rollout_fn(system, lj.RDP(), n, t_final, save="all")(q0, qdot0, ctl))
+    best_ours = max(r["steps_per_s_q"] for r in headline_rows) if headline_rows else None
+    rows = []
+    for fn, label in (
+        ("rollout", "scalar loop per trajectory"),
+        ("rollout_simd", "vectorised across trajectories"),
+    ):
+        for threads in sorted({1, os.cpu_count() or 1}):
+            lib.set_threads(threads)
+            f = getattr(lib, fn)
+            f(*call_args)
+            diff = float(np.max(np.abs(q - ours)))
+            wall = []
+            for _ in range(cfg.repeats):
+                t = time.perf_counter()
+                f(*call_args)
+                wall.append(time.perf_counter() - t)
+            row = dict(
+                variant=label,
+                threads=threads,
+                B=b,
+                N=n,
+                steps_per_s=b * n / min(wall),
+                max_abs_diff_vs_ours=diff,
+            )
+            row["ours_best_over_c"] = best_ours / row["steps_per_s"] if best_ours else None
+            rows.append(row)
+            log(
+                f"  C {label}, {threads} thread(s): {row['steps_per_s']:.3g} steps/s "
+                f"(|q - ours| <= {diff:.1e})"
+            )
+    return rows
 
-    def order(self, terms):
-        return 4
+
+def throughput(cfg: Config, log) -> list[dict]:
+    """Forward throughput of every integrator on both models (positions only, batched)."""
+    rows = []
+    for model, system in SYSTEMS.items():
+        data = maneuvers(system, cfg.throughput_batch)
+        for name, make in INTEGRATORS.items():
+            if cfg.quick and model == "car" and name not in ("RDP2", "RDP6", "RK4"):
+                continue
+            st = timeit(rollout_fn(system, make(), cfg.steps), *data, repeats=cfg.repeats)
+            row = dict(
+                model=model,
+                integrator=name,
+                B=cfg.throughput_batch,
+                N=cfg.steps,
+                steps_per_s=cfg.throughput_batch * cfg.steps / st["min"],
+                compile_s=st["first_call"] - st["min"],
+            )
+            rows.append(row)
+            log(f"  {model:10s} {name:12s} {row['steps_per_s']:.3g} steps/s")
+    return rows
 
 
-def diffrax_fn(system, solver, t_final=10.0, n_steps=None, rtol=None, max_steps=100_000):
+def _diffrax_fn(system, solver, t_final, *, n_steps=None, rtol=None, max_steps=200_000):
     def one(q0, qdot0, ctl):
         v0 = system.velocities_from_qdot(q0, qdot0)
         term = diffrax.ODETerm(lambda t, y, args: system.ode(y, ctl(t)))
-        if n_steps is not None:
-            ctrl, dt0 = diffrax.ConstantStepSize(), t_final / n_steps
-        else:
-            ctrl, dt0 = diffrax.PIDController(rtol=rtol, atol=rtol), None
+        ctrl, dt0 = (
+            (diffrax.ConstantStepSize(), t_final / n_steps)
+            if n_steps
+            else (diffrax.PIDController(rtol=rtol, atol=rtol), None)
+        )
         sol = diffrax.diffeqsolve(
             term,
             solver,
@@ -142,268 +329,198 @@ def diffrax_fn(system, solver, t_final=10.0, n_steps=None, rtol=None, max_steps=
     return jax.jit(jax.vmap(one))
 
 
-# ------------------------------------------------------------------ sections
-def throughput(args, log):
-    rows = []
-    b_sizes = [(args.batch, args.steps, "batched"), (1, args.steps, "single")]
-    for model, system in SYSTEMS.items():
-        for dtype in (jnp.float64, jnp.float32):
-            for name, integ in integrators().items():
-                for b, n, mode in b_sizes:
-                    # quick: every integrator on the snakeboard in float64 batched; RDP elsewhere
-                    headline = model == "snakeboard" and dtype == jnp.float64 and mode == "batched"
-                    if args.quick and not (headline or name == "RDP(exp)"):
-                        continue
-                    data = maneuvers(system, b, dtype=dtype)
-                    st = timeit(rollout_fn(system, integ, n, what="traj"), *data, repeats=args.repeats)
-                    row = dict(model=model, integrator=name, dtype=jnp.dtype(dtype).name, mode=mode, B=b, N=n)
-                    row.update(
-                        st, steps_per_s=b * n / st["min"], steps_per_s_cpu=b * n / max(st["cpu_min"], 1e-9)
+def _reference_final(system, data, t_final):
+    q0, qdot0, ctl = data
+    return np.asarray(
+        jax.vmap(
+            lambda a, b, c: lj.reference(
+                system, a, b, c, jnp.array([t_final]), rtol=1e-12, atol=1e-12, max_steps=2_000_000
+            ).q[-1]
+        )(q0, qdot0, ctl)
+    )
+
+
+def work_precision(cfg: Config, t_final: float, steps: tuple[int, ...], log) -> dict:
+    """Mean final position error over a batch of snakeboard maneuvers against seconds per
+    trajectory (batched), for the RDP orders, RK2, RK4 and diffrax's adaptive Tsit5 and Dopri8."""
+    system = SYSTEMS["snakeboard"]
+    data = maneuvers(system, cfg.wp_maneuvers, seed=1)
+    ref = _reference_final(system, data, t_final)
+    m = cfg.wp_maneuvers
+
+    def err(qf):
+        e = np.linalg.norm(np.asarray(qf)[:, :2] - ref[:, :2], axis=-1)
+        return float(np.mean(e)) if np.all(np.isfinite(e)) else float("nan")
+
+    curves = {}
+    names = ("RDP2", "RDP4", "RDP6", "RDP6 cayley", "RK2", "RK4")
+    for name in names:
+        pts = []
+        for n in steps:
+            if t_final > 60 and name in ("RDP4", "RDP6", "RDP6 cayley") and n > steps[-1] // 2:
+                continue  # high orders converge before the densest grids: keep the run short
+            fn = rollout_fn(system, INTEGRATORS[name](), n, t_final)
+            st = timeit(fn, *data, repeats=cfg.repeats)
+            pts.append(dict(n_steps=n, error=err(fn(*data)[:, -1]), seconds_per_traj=st["min"] / m))
+        curves[name] = pts
+        log(f"  {t_final:g} s {name}: " + ", ".join(f"N={p['n_steps']} {p['error']:.1e}" for p in pts))
+    if t_final <= 60:
+        for name, solver in (("diffrax Tsit5", diffrax.Tsit5()), ("diffrax Dopri8", diffrax.Dopri8())):
+            pts = []
+            for tol in cfg.wp_tols:
+                fn = _diffrax_fn(system, solver, t_final, rtol=tol)
+                st = timeit(fn, *data, repeats=cfg.repeats)
+                qf, nsteps = fn(*data)
+                pts.append(
+                    dict(
+                        rtol=tol, steps=float(np.mean(nsteps)), error=err(qf), seconds_per_traj=st["min"] / m
                     )
-                    rows.append(row)
-                    log(
-                        f"  {model:10s} {row['dtype']:7s} {name:12s} {mode:7s} "
-                        f"{row['steps_per_s']:.3g} steps/s"
-                    )
-    # the general path of RDP, for the speed-up of the fast path
-    system = SYSTEMS["snakeboard"]
-    data = maneuvers(system, args.batch)
-    st = timeit(
-        rollout_fn(system, lj.RDP(), args.steps, fast_path=False, what="traj"), *data, repeats=args.repeats
-    )
-    row = dict(model="snakeboard", integrator="RDP(exp) general path", dtype="float64", mode="batched")
-    row.update(B=args.batch, N=args.steps, **st, steps_per_s=args.batch * args.steps / st["min"])
-    row["steps_per_s_cpu"] = args.batch * args.steps / max(st["cpu_min"], 1e-9)
-    rows.append(row)
-    log(f"  snakeboard general-path RDP {row['steps_per_s']:.3g} steps/s")
-    return rows
-
-
-def headline(args, log):
-    """The target configuration (snakeboard, RDP, float64, B x N = 1000 x 1000): forward
-    throughput (positions only, and the whole trajectory with its diagnostics) and the cost of
-    a gradient of a terminal cost, on one device and with the batch sharded over every device."""
-    system = SYSTEMS["snakeboard"]
-    b, n = args.batch, args.steps
-    data = maneuvers(system, b)
-    layouts = [("1 device", data)]
-    if jax.device_count() > 1:
-        layouts.append(
-            (f"sharded over {jax.device_count()} devices", sweeps.shard_batch(data, sweeps.device_mesh())[0])
-        )
-    rows = []
-    for layout, (q0, qdot0, ctl) in layouts:
-        row = dict(layout=layout, B=b, N=n)
-        for what in ("q", "traj"):
-            st = timeit(rollout_fn(system, lj.RDP(), n, what=what), q0, qdot0, ctl, repeats=args.repeats)
-            row[f"steps_per_s_{what}"] = b * n / st["min"]
-        fwd = jax.jit(lambda c, q0=q0, qdot0=qdot0: _terminal_loss(system, q0, qdot0, c, n, False))
-        grad = jax.jit(jax.grad(lambda c, q0=q0, qdot0=qdot0: _terminal_loss(system, q0, qdot0, c, n, False)))
-        st_f = timeit(fwd, ctl, repeats=args.repeats)
-        st_g = timeit(grad, ctl, repeats=args.repeats)
-        row.update(forward_s=st_f["min"], grad_s=st_g["min"], grad_ratio=st_g["min"] / st_f["min"])
-        rows.append(row)
-        log(
-            f"  {layout}: {row['steps_per_s_q']:.3g} steps/s (positions), {row['steps_per_s_traj']:.3g} "
-            f"(trajectory), gradient/forward {row['grad_ratio']:.2f}"
-        )
-    return rows
-
-
-C_SOURCE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "c", "rdp_snakeboard.c")
-
-
-def compiled_c(args, headline_rows, log):
-    """The same snakeboard RDP rollout (alpha = 1/2, exp, positions only) in C, compiled here with
-    ``cc -O3 -march=native -ffast-math -fopenmp``: a scalar loop per trajectory and a loop
-    vectorised across trajectories, on one thread and on every core (OpenMP). Same maneuvers
-    and initial momenta as ours; the positions must agree with ``lj.simulate`` to round-off.
-    Returns rows, or [] when no C compiler is found."""
-    import ctypes
-    import shutil
-    import subprocess
-    import tempfile
-
-    cc = shutil.which(os.environ.get("CC", "cc")) or shutil.which("gcc")
-    if cc is None:
-        log("  no C compiler: skipped")
-        return []
-    lib_path = os.path.join(tempfile.mkdtemp(prefix="ldap_jax_bench_"), "librdp.so")
-    flags = ["-O3", "-march=native", "-ffast-math", "-fopenmp", "-shared", "-fPIC"]
-    subprocess.run([cc, *flags, C_SOURCE, "-o", lib_path, "-lm"], check=True)
-    lib = ctypes.CDLL(lib_path)
-    system = SYSTEMS["snakeboard"]
-    b, n, t_final = args.batch, args.steps, 10.0
-    h = t_final / n
-    q0, qdot0, ctl = maneuvers(system, b)
-    st = jax.vmap(lambda a, v: lj.RDP().init(system, jnp.asarray(h), a, v, None))(q0, qdot0)
-    init = np.stack(
-        [
-            q0[:, 2],
-            q0[:, 0],
-            q0[:, 1],
-            q0[:, 3],
-            q0[:, 4],
-            st.pu[:, 0],
-            st.pu[:, 1],
-            st.mu[:, 0],
-            st.mu[:, 1],
-        ],
-        1,
-    )
-    init = np.ascontiguousarray(init, np.float64)
-    ctl_np = np.ascontiguousarray(np.stack([ctl.amplitude, ctl.frequency, ctl.phase], 1), np.float64)
-    q = np.zeros((b, n + 1, 5))
-    ptr = ctypes.POINTER(ctypes.c_double)
-    dbl = ctypes.c_double
-    call_args = (
-        ctypes.c_int(b),
-        ctypes.c_int(n),
-        ctypes.c_int(ctl_np.shape[-1]),
-        dbl(h),
-        *(dbl(float(getattr(system, k))) for k in ("m", "l", "I", "J")),
-        init.ctypes.data_as(ptr),
-        ctl_np.ctypes.data_as(ptr),
-        q.ctypes.data_as(ptr),
-    )
-    ours = np.asarray(rollout_fn(system, lj.RDP(), n, t_final=t_final)(q0, qdot0, ctl))
-    best_ours = max(r["steps_per_s_q"] for r in headline_rows) if headline_rows else None
-    rows = []
-    for fn, label in (
-        ("rollout", "scalar loop per trajectory"),
-        ("rollout_simd", "vectorised across trajectories"),
-    ):
-        for threads in sorted({1, os.cpu_count() or 1}):
-            lib.set_threads(threads)
-            f = getattr(lib, fn)
-            f(*call_args)
-            diff = float(np.max(np.abs(q - ours)))
-            wall = []
-            for _ in range(args.repeats):
-                t = time.perf_counter()
-                f(*call_args)
-                wall.append(time.perf_counter() - t)
-            row = dict(
-                variant=label,
-                threads=threads,
-                B=b,
-                N=n,
-                wall_min=min(wall),
-                steps_per_s=b * n / min(wall),
-                max_abs_diff_vs_ours=diff,
-            )
-            row["ours_best_over_c"] = best_ours / row["steps_per_s"] if best_ours else None
-            rows.append(row)
-            log(
-                f"  C {label}, {threads} thread(s): {row['steps_per_s']:.3g} steps/s "
-                f"(|q - ours| <= {diff:.1e})"
-            )
-    return rows
-
-
-def _terminal_loss(system, q0, qdot0, ctl, n, checkpoint):
-    """Sum over the batch of ``|(x_N, y_N)|^2``: the loss whose gradient is timed."""
-
-    def one(a, b, c):
-        q = lj.simulate(
-            system, a, b, c, t_final=10.0, n_steps=n, check_constraints=False, checkpoint=checkpoint
-        ).q
-        return jnp.sum(q[-1, :2] ** 2)
-
-    return jnp.sum(jax.vmap(one)(q0, qdot0, ctl))
-
-
-def peers(args, log):
-    system = SYSTEMS["snakeboard"]
-    b, n = args.batch, args.steps
-    data = maneuvers(system, b)
-    out = []
-    ours = timeit(rollout_fn(system, lj.RDP(), n), *data, repeats=args.repeats)
-    for name, fn in (
-        ("diffrax Tsit5 (PID, rtol=atol=1e-6)", diffrax_fn(system, diffrax.Tsit5(), rtol=1e-6)),
-        (f"diffrax RK4 (constant step, N={n})", diffrax_fn(system, _RK4(), n_steps=n)),
-    ):
-        st = timeit(fn, *data, repeats=args.repeats)
-        steps = int(np.mean(np.asarray(fn(*data)[1])))
-        out.append(
-            dict(
-                peer=name,
-                B=b,
-                wall_min=st["min"],
-                steps=steps,
-                rdp_wall_min=ours["min"],
-                ratio_ours_over_peer=ours["min"] / st["min"],
-            )
-        )
-        log(f"  {name}: {st['min']:.3f} s vs RDP {ours['min']:.3f} s")
+                )
+            curves[name] = pts
+            log(f"  {t_final:g} s {name}: " + ", ".join(f"tol={p['rtol']:.0e} {p['error']:.1e}" for p in pts))
+    levels = (1e-3, 1e-6, 1e-9) if t_final <= 60 else (1.0, 1e-1, 1e-2, 1e-3)
+    cost = {name: {f"{lvl:.0e}": _cost_to_reach(pts, lvl) for lvl in levels} for name, pts in curves.items()}
+    ratios = {}
+    for name in ("RDP2", "RDP4", "RDP6", "RDP6 cayley", "diffrax Tsit5"):
+        if name in cost:
+            ratios[name] = {
+                lvl: (
+                    None
+                    if cost[name][lvl] is None or cost["RK4"][lvl] is None
+                    else cost[name][lvl] / cost["RK4"][lvl]
+                )
+                for lvl in cost[name]
+            }
+    out = dict(t_final=t_final, curves=curves, cost=cost, ratio_to_rk4=ratios)
+    if t_final > 60:
+        out["equal_cost"] = _equal_cost_comparison(curves)
     return out
 
 
-def work_precision(args, log):
-    system = SYSTEMS["snakeboard"]
-    m = args.wp_maneuvers
-    q0, qdot0, ctl = maneuvers(system, m, seed=1)
-    t_final = 10.0
-    ref = jax.vmap(lambda a, b, c: lj.reference(system, a, b, c, jnp.array([0.0, t_final])).q[-1])(
-        q0, qdot0, ctl
-    )
-    curves = {}
-
-    def err(qf):
-        return float(np.mean(np.linalg.norm(np.asarray(qf)[..., :2] - np.asarray(ref)[:, :2], axis=-1)))
-
-    for name, integ in integrators().items():
-        pts = []
-        for n in args.wp_steps:
-            fn = rollout_fn(system, integ, n)
-            st = timeit(lambda *a, fn=fn: fn(*a)[:, -1], q0, qdot0, ctl, repeats=args.repeats)
-            pts.append(dict(n_steps=n, error=err(fn(q0, qdot0, ctl)[:, -1]), seconds_per_traj=st["min"] / m))
-        curves[name] = pts
-        log(f"  {name}: " + ", ".join(f"N={p['n_steps']} err={p['error']:.1e}" for p in pts))
-    for name, solver in (("diffrax Tsit5", diffrax.Tsit5()), ("diffrax Dopri8", diffrax.Dopri8())):
-        pts = []
-        for tol in args.wp_tols:
-            fn = diffrax_fn(system, solver, rtol=tol)
-            st = timeit(fn, q0, qdot0, ctl, repeats=args.repeats)
-            qf, steps = fn(q0, qdot0, ctl)
-            pts.append(
-                dict(rtol=tol, steps=float(np.mean(steps)), error=err(qf), seconds_per_traj=st["min"] / m)
-            )
-        curves[name] = pts
-        log(f"  {name}: " + ", ".join(f"tol={p['rtol']:.0e} err={p['error']:.1e}" for p in pts))
-    costs = {
-        name: {f"{lvl:.0e}": _cost_to_reach(pts, lvl) for lvl in (1e-3, 1e-6)} for name, pts in curves.items()
-    }
-    return curves, costs
-
-
 def _cost_to_reach(pts, level):
-    """Seconds per trajectory to reach ``level`` (log-log interpolation), None if not reached."""
-    e = np.array([p["error"] for p in pts])
-    t = np.array([p["seconds_per_traj"] for p in pts])
-    order = np.argsort(t)
-    e, t = e[order], t[order]
-    for i in range(len(e)):
-        if e[i] <= level:
+    """Seconds per trajectory to reach ``level`` (log-log interpolation between the two runs that
+    bracket it), None if not reached."""
+    pts = [p for p in pts if np.isfinite(p["error"]) and p["error"] > 0]
+    pts = sorted(pts, key=lambda p: p["seconds_per_traj"])
+    for i, p in enumerate(pts):
+        if p["error"] <= level:
             if i == 0:
-                return float(t[0])
-            x = (np.log(level) - np.log(e[i - 1])) / (np.log(e[i]) - np.log(e[i - 1]))
-            return float(np.exp(np.log(t[i - 1]) + x * (np.log(t[i]) - np.log(t[i - 1]))))
+                return float(p["seconds_per_traj"])
+            a, b = pts[i - 1], p
+            x = (np.log(level) - np.log(a["error"])) / (np.log(b["error"]) - np.log(a["error"]))
+            return float(
+                np.exp(
+                    np.log(a["seconds_per_traj"])
+                    + x * (np.log(b["seconds_per_traj"]) - np.log(a["seconds_per_traj"]))
+                )
+            )
     return None
 
 
-def gradients(args, log):
-    system = SYSTEMS["snakeboard"]
-    b, n = args.grad_batch, args.steps
-    q0, qdot0, ctl = maneuvers(system, b)
+def _equal_cost_comparison(curves) -> list[dict]:
+    """At each RK4 point below 1 m: the error of each RDP order at the same cost (log-log interpolation)."""
     rows = []
-    fwd = jax.jit(lambda c: jnp.sum(rollout_fn(system, lj.RDP(), n)(q0, qdot0, c)[:, -1, :2] ** 2))
-    st_f = timeit(fwd, ctl, repeats=args.repeats)
+    for p in curves["RK4"]:
+        if not (np.isfinite(p["error"]) and p["error"] < 1.0):
+            continue
+        row = dict(n_steps_rk4=p["n_steps"], seconds=p["seconds_per_traj"], rk4_error=p["error"])
+        for name in ("RDP2", "RDP4", "RDP6"):
+            pts = sorted(
+                (q for q in curves[name] if np.isfinite(q["error"])), key=lambda q: q["seconds_per_traj"]
+            )
+            t = np.log([q["seconds_per_traj"] for q in pts])
+            e = np.log([q["error"] for q in pts])
+            row[name] = (
+                float(np.exp(np.interp(np.log(p["seconds_per_traj"]), t, e))) if len(pts) > 1 else None
+            )
+        rows.append(row)
+    return rows
+
+
+def orders(cfg: Config, log) -> list[dict]:
+    """Fitted orders of RDP4 and RDP6 (both retractions) on random 2 s maneuvers of both models."""
+    rows = []
+    for model, system in SYSTEMS.items():
+        data = maneuvers(system, 4, seed=5)
+        ref = _reference_final(system, data, 2.0)
+        for order in (4, 6):
+            for retraction in ("exp", "cayley"):
+                errs = []
+                ns = cfg.order_steps if order == 6 else tuple(2 * n for n in cfg.order_steps)
+                for n in ns:
+                    q = rollout_fn(system, lj.RDP(order=order, retraction=retraction), n, 2.0)(*data)[:, -1]
+                    errs.append(float(np.max(np.linalg.norm(np.asarray(q)[:, :3] - ref[:, :3], axis=-1))))
+                p = float(np.polyfit(np.log([2.0 / n for n in ns]), np.log(errs), 1)[0])
+                rows.append(
+                    dict(
+                        model=model, order=order, retraction=retraction, steps=list(ns), errors=errs, fitted=p
+                    )
+                )
+                errs_s = [f"{e:.1e}" for e in errs]
+                log(f"  {model} RDP{order} {retraction}: errors {errs_s}, order {p:.2f}")
+    return rows
+
+
+def energy(cfg: Config, log) -> list[dict]:
+    """Largest |E - E0| over the first and the second half of long work-free runs (car: no wheel
+    torque, sinusoidal steering, h = 0.3 s; snakeboard: no rotor torque, no steering, h = 0.05 s),
+    with node velocities from the carried momenta."""
+    rows = []
+    car, sb = SYSTEMS["car"], SYSTEMS["snakeboard"]
+    q_car = jnp.array([0.0, 0.0, 0.1, 0.0, 0.0])
+    cases = {
+        "car": (
+            car,
+            q_car,
+            car.qdot_from_velocities(q_car, jnp.array([3.0]), jnp.zeros(2)),
+            lj.Sinusoids([[0.0], [0.6]], [[1.0], [1.5]], [[0.0], [0.0]]),
+            0.3,
+        ),
+        "snakeboard": (
+            sb,
+            jnp.array([0.0, 0.0, 0.3, 0.0, 0.5]),
+            sb.qdot_from_velocities(
+                jnp.array([0.0, 0.0, 0.3, 0.0, 0.5]), jnp.array([1.0, 0.0, 0.4]), jnp.zeros(2)
+            ),
+            None,
+            0.05,
+        ),
+    }
+    n = cfg.energy_steps
+    for model, (system, q0, qdot0, ctl, h) in cases.items():
+        for name in ("RDP2", "RDP4", "RDP6", "RK4"):
+            traj = lj.simulate(
+                system, q0, qdot0, ctl, t_final=n * h, n_steps=n, integrator=INTEGRATORS[name](), save=100
+            )
+            e = np.abs(np.asarray(traj.energy - traj.energy[0]))
+            row = dict(
+                model=model,
+                integrator=name,
+                h=h,
+                steps=n,
+                first_half=float(e[: e.size // 2].max()),
+                second_half=float(e[e.size // 2 :].max()),
+                failed=bool(traj.failed),
+            )
+            rows.append(row)
+            log(f"  {model} {name}: max |dE| {row['first_half']:.2e} / {row['second_half']:.2e}")
+    return rows
+
+
+def gradients(cfg: Config, log) -> list[dict]:
+    """Gradient / forward of a terminal cost, and the gradient's memory per checkpoint policy."""
+    system = SYSTEMS["snakeboard"]
+    b, n = cfg.grad_batch, cfg.steps
+    q0, qdot0, ctl = maneuvers(system, b)
+    fwd = jax.jit(lambda c: _terminal_loss(system, q0, qdot0, c, n, False))
+    st_f = timeit(fwd, ctl, repeats=cfg.repeats)
+    rows = []
     for ck in (False, "step", "sqrt"):
         g = jax.jit(jax.grad(lambda c, ck=ck: _terminal_loss(system, q0, qdot0, c, n, ck)))
-        st_g = timeit(g, ctl, repeats=args.repeats)
+        st_g = timeit(g, ctl, repeats=cfg.repeats)
         mem = {}
-        for nn in (args.mem_steps // 10, args.mem_steps):
+        c0 = jax.tree_util.tree_map(lambda x: x[0], ctl)
+        for nn in (cfg.mem_steps // 10, cfg.mem_steps):
 
             def loss1(c, nn=nn, ck=ck):
                 q = lj.simulate(
@@ -415,15 +532,13 @@ def gradients(args, log):
                     n_steps=nn,
                     check_constraints=False,
                     checkpoint=ck,
+                    save="final",
+                    diagnostics=False,
                 ).q
                 return jnp.sum(q[-1, :2] ** 2)
 
-            c0 = jax.tree_util.tree_map(lambda x: x[0], ctl)
-            t = time.perf_counter()
-            compiled = jax.jit(jax.grad(loss1)).lower(c0).compile()
-            ctime = time.perf_counter() - t
-            ma = compiled.memory_analysis()
-            mem[nn] = dict(temp_bytes=int(ma.temp_size_in_bytes) if ma else None, compile_s=ctime)
+            ma = jax.jit(jax.grad(loss1)).lower(c0).compile().memory_analysis()
+            mem[nn] = int(ma.temp_size_in_bytes) if ma else None
         row = dict(
             checkpoint=ck,
             B=b,
@@ -431,252 +546,341 @@ def gradients(args, log):
             forward_s=st_f["min"],
             grad_s=st_g["min"],
             ratio=st_g["min"] / st_f["min"],
-            grad_compile_first_call_s=st_g["first_call"],
-            memory=mem,
+            temp_bytes=mem,
         )
         rows.append(row)
-        log(f"  checkpoint={ck}: grad/forward = {row['ratio']:.2f}, temp memory {mem}")
+        log(f"  checkpoint={ck}: grad/forward {row['ratio']:.2f}, temp memory {mem}")
     return rows
 
 
-def compile_times(log):
+def memory(cfg: Config, log) -> list[dict]:
+    """Memory of a batched rollout by save policy (XLA's memory analysis of the compiled program)."""
+    system = SYSTEMS["snakeboard"]
+    b, n = cfg.memory_batch, cfg.memory_steps
+    data = maneuvers(system, b)
+    rows = []
+    for save, diag in (("all", True), ("all", False), (n // 40, False), ("final", True), ("final", False)):
+        fn = rollout_fn(system, lj.RDP(), n, save=save, diagnostics=diag)
+        ma = fn.lower(*data).compile().memory_analysis()
+        row = dict(
+            save=str(save),
+            diagnostics=diag,
+            B=b,
+            N=n,
+            output_bytes=int(ma.output_size_in_bytes),
+            temp_bytes=int(ma.temp_size_in_bytes),
+        )
+        rows.append(row)
+        log(
+            f"  save={save}, diagnostics={diag}: output {row['output_bytes'] / 1e6:.1f} MB, "
+            f"temp {row['temp_bytes'] / 1e6:.1f} MB"
+        )
+    return rows
+
+
+def compile_times(cfg: Config, log) -> dict:
     out = {}
     system = SYSTEMS["snakeboard"]
-    q0, qdot0, ctl = maneuvers(system, 1)
-    for name, integ in (("RDP(exp)", lj.RDP()), ("RK4", lj.RK4())):
-        for n in (1000,):
-            fn = jax.jit(
-                lambda a, b, c, integ=integ, n=n: lj.simulate(
-                    system, a, b, c, t_final=10.0, n_steps=n, integrator=integ, check_constraints=False
-                )
+    q0, qdot0, ctl = jax.tree_util.tree_map(lambda x: x[0], maneuvers(system, 1))
+    for name in ("RDP2", "RDP6", "RK4"):
+        fn = jax.jit(
+            lambda a, b, c, name=name: lj.simulate(
+                system,
+                a,
+                b,
+                c,
+                t_final=10.0,
+                n_steps=1000,
+                integrator=INTEGRATORS[name](),
+                check_constraints=False,
             )
-            args0 = (q0[0], qdot0[0], jax.tree_util.tree_map(lambda x: x[0], ctl))
-            t = time.perf_counter()
-            fn.lower(*args0).compile()
-            out[f"simulate {name} N={n}"] = time.perf_counter() - t
+        )
+        t = time.perf_counter()
+        fn.lower(q0, qdot0, ctl).compile()
+        out[f"simulate {name} N=1000 (diagnostics)"] = time.perf_counter() - t
     log("  " + ", ".join(f"{k}: {v:.2f} s" for k, v in out.items()))
     return out
 
 
-# ------------------------------------------------------------------ output
-def user_snakeboard(sb):
-    """The snakeboard as a user's ``lj.System``: the model's reduced description (l, A(r), e(r))
-    handed to the public description, so every step goes through the general autodiff path."""
-    p = dict(m=sb.m, l=sb.l, I=sb.I, J=sb.J)
-
-    def model(p):
-        return lj.Snakeboard(**p)
-
-    return lj.System(
+def general_step(cfg: Config, log) -> list[dict]:
+    """Cost of RDP's general implicit step relative to the closed form (snakeboard, batched)."""
+    sb = SYSTEMS["snakeboard"]
+    b, n = (100, 200) if cfg.quick else (1000, 1000)
+    data = maneuvers(sb, b)
+    user = lj.System(
         2,
-        lambda p, r, u, xi: model(p).reduced_lagrangian(r, u, xi),
-        lambda p, r: model(p).connection(r),
-        lambda p, r: model(p).symmetry_basis(r),
-        params=p,
+        lambda p, r, u, xi: lj.Snakeboard(**p).reduced_lagrangian(r, u, xi),
+        lambda p, r: lj.Snakeboard(**p).connection(r),
+        lambda p, r: lj.Snakeboard(**p).symmetry_basis(r),
+        params=dict(m=sb.m, l=sb.l, I=sb.I, J=sb.J),
         singularity=lambda p, r: jnp.cos(r[1]),
     )
-
-
-def general_step(args, log):
-    """Cost of RDP's general implicit step relative to the closed form (snakeboard, same N, batched)."""
-    sb = SYSTEMS["snakeboard"]
-    b, n = (100, 200) if args.quick else (1000, 1000)
-    man = maneuvers(sb, b)
     cases = [
-        ("closed form, fast path", sb, lj.RDP(), True),
-        ("closed form, general rollout", sb, lj.RDP(), False),
-        ("general Newton step (dtau_order=1)", sb, lj.RDP(solver="newton"), False),
-        ("general Newton step, exact dexp^-1", sb, lj.RDP(dtau_order=None), False),
-        ("lj.System description, Newton", user_snakeboard(sb), lj.RDP(), False),
+        ("closed-form kernel", sb, lj.RDP()),
+        ("general Newton step (dtau_order=1)", sb, lj.RDP(solver="newton")),
+        ("general Newton step, exact dexp^-1", sb, lj.RDP(dtau_order=None)),
+        ("lj.System description", user, lj.RDP()),
     ]
     rows = []
-    for label, system, integrator, fast in cases:
-        t = timeit(rollout_fn(system, integrator, n, fast_path=fast), *man, repeats=args.repeats)
-        rows.append({"case": label, "B": b, "N": n, "wall_min": t["min"], "cpu_min": t["cpu_min"]})
-        log(f"  general step: {label}: {t['min']:.3f} s")
-    base = rows[0]["wall_min"]
+    for label, system, integrator in cases:
+        st = timeit(rollout_fn(system, integrator, n), *data, repeats=cfg.repeats)
+        rows.append(dict(case=label, B=b, N=n, wall_min=st["min"]))
+        log(f"  {label}: {st['min']:.3f} s")
     for r in rows:
-        r["ratio_to_fast_closed_form"] = r["wall_min"] / base
+        r["ratio_to_kernel"] = r["wall_min"] / rows[0]["wall_min"]
     return rows
 
 
+# ------------------------------------------------------------------------------------ output
+def _fmt(x, spec=".2e"):
+    return "n/a" if x is None else format(x, spec)
+
+
 def write_markdown(path, res):
-    lines = [
+    L = [
         "# ldap_jax benchmarks",
         "",
-        f"Machine: {res['machine']}",
-        "",
-        "Timings: min of repeats after compilation (wall); `cpu` = process CPU time.",
+        f"Machine: {res['machine']}. Timings: min of repeats after compilation (wall).",
         "",
     ]
-    lines += [
-        "## Headline (snakeboard, RDP, float64, B x N = 1000 x 1000)",
+    L += [
+        "## Headline (snakeboard, RDP order 2, float64)",
         "",
-        "| layout | steps/s (positions) | steps/s (trajectory + diagnostics) | forward (s) | gradient (s) "
-        "| gradient / forward |",
-        "|---|---|---|---|---|---|",
+        "| layout | B x N | steps/s (positions) | steps/s (trajectory + diagnostics) | gradient / forward |",
+        "|---|---|---|---|---|",
     ]
-    for r in res.get("headline", []):
-        lines.append(
-            f"| {r['layout']} | {r['steps_per_s_q']:.3g} | {r['steps_per_s_traj']:.3g} "
-            f"| {r['forward_s']:.3f} | {r['grad_s']:.3f} | {r['grad_ratio']:.2f} |"
-        )
+    L += [
+        f"| {r['layout']} | {r['B']} x {r['N']} | {r['steps_per_s_q']:.3g} | {r['steps_per_s_traj']:.3g} "
+        f"| {r['grad_ratio']:.2f} |"
+        for r in res["headline"]
+    ]
     if res.get("compiled_c"):
-        lines += [
+        L += [
             "",
-            "## Against compiled C (snakeboard, RDP, float64, positions only, B x N = 1000 x 1000)",
+            "## Against compiled C (same step, same maneuvers; positions only)",
             "",
-            "The same step in C (`scripts/c/rdp_snakeboard.c`, `cc -O3 -march=native -ffast-math -fopenmp`), "
-            "same maneuvers; ratio = our best headline rate (positions) / C's.",
-            "",
-            "| C variant | threads | steps/s | max abs diff of q vs ours | ours / C |",
+            "| C variant | threads | steps/s | max abs diff vs ours | ours (best) / C |",
             "|---|---|---|---|---|",
         ]
-        for r in res["compiled_c"]:
-            ratio = "n/a" if r["ours_best_over_c"] is None else f"{r['ours_best_over_c']:.2f}"
-            lines.append(
-                f"| {r['variant']} | {r['threads']} | {r['steps_per_s']:.3g} "
-                f"| {r['max_abs_diff_vs_ours']:.1e} | {ratio} |"
-            )
-    lines += [
+        L += [
+            f"| {r['variant']} | {r['threads']} | {r['steps_per_s']:.3g} | {r['max_abs_diff_vs_ours']:.1e} "
+            f"| {_fmt(r['ours_best_over_c'], '.2f')} |"
+            for r in res["compiled_c"]
+        ]
+    L += [
         "",
-        "## Forward throughput (steps/s)",
+        "## Forward throughput (positions only, batched)",
         "",
-        "| model | dtype | integrator | mode | B x N | steps/s (wall) | steps/s (cpu) |",
-        "|---|---|---|---|---|---|---|",
+        "| model | integrator | B x N | steps/s |",
+        "|---|---|---|---|",
     ]
-    for r in res["throughput"]:
-        lines.append(
-            f"| {r['model']} | {r['dtype']} | {r['integrator']} | {r['mode']} | {r['B']} x {r['N']} "
-            f"| {r['steps_per_s']:.3g} | {r['steps_per_s_cpu']:.3g} |"
-        )
-    lines += [
-        "",
-        "## diffrax peers (snakeboard, float64)",
-        "",
-        "| peer | B | steps | peer wall (s) | RDP wall (s) | RDP / peer |",
-        "|---|---|---|---|---|---|",
+    L += [
+        f"| {r['model']} | {r['integrator']} | {r['B']} x {r['N']} | {r['steps_per_s']:.3g} |"
+        for r in res["throughput"]
     ]
-    for r in res["peers"]:
-        lines.append(
-            f"| {r['peer']} | {r['B']} | {r['steps']} | {r['wall_min']:.3f} | {r['rdp_wall_min']:.3f} "
-            f"| {r['ratio_ours_over_peer']:.2f} |"
-        )
-    lines += [
-        "",
-        "## Work-precision (snakeboard, 10 s, mean position error)",
-        "",
-        "Seconds per trajectory to reach a mean position error at 10 s (None: not reached in the sweep).",
-        "",
-        "| method | 1e-3 m | 1e-6 m |",
-        "|---|---|---|",
-    ]
-    fmt = lambda x: "n/a" if x is None else f"{x:.2e}"  # noqa: E731
-    for name, c in res["work_precision_cost"].items():
-        lines.append(f"| {name} | {fmt(c['1e-03'])} | {fmt(c['1e-06'])} |")
-    lines += [
+    for key in ("wp_10s", "wp_600s"):
+        wp = res[key]
+        levels = list(next(iter(wp["cost"].values())))
+        L += [
+            "",
+            f"## Work-precision, snakeboard, {wp['t_final']:g} s (mean final position error, batched)",
+            "",
+            "Seconds per trajectory to reach each error level (n/a: not reached):",
+            "",
+            "| method | " + " | ".join(f"{lvl} m" for lvl in levels) + " |",
+            "|---" * (len(levels) + 1) + "|",
+        ]
+        L += [
+            f"| {name} | " + " | ".join(_fmt(c[lvl]) for lvl in levels) + " |"
+            for name, c in wp["cost"].items()
+        ]
+        L += [
+            "",
+            "Cost relative to RK4:",
+            "",
+            "| method | " + " | ".join(f"{lvl} m" for lvl in levels) + " |",
+            "|---" * (len(levels) + 1) + "|",
+        ]
+        L += [
+            f"| {name} | " + " | ".join(_fmt(r[lvl], ".2f") for lvl in levels) + " |"
+            for name, r in wp["ratio_to_rk4"].items()
+        ]
+        if "equal_cost" in wp:
+            L += [
+                "",
+                "At RK4's cost (RK4 points below 1 m): error of each method at the same seconds "
+                "per trajectory",
+                "",
+                "| RK4 N | seconds/traj | RK4 | RDP2 | RDP4 | RDP6 |",
+                "|---|---|---|---|---|---|",
+            ]
+            L += [
+                f"| {r['n_steps_rk4']} | {r['seconds']:.2e} | {r['rk4_error']:.2e} | {_fmt(r['RDP2'])} "
+                f"| {_fmt(r['RDP4'])} | {_fmt(r['RDP6'])} |"
+                for r in wp["equal_cost"]
+            ]
+    L += [
         "",
         "![work-precision](work_precision.png)",
         "",
-        "## Gradient cost (snakeboard, float64, terminal cost)",
+        "## Orders (2 s random maneuvers, vs lj.reference)",
+        "",
+        "| model | order | retraction | errors | fitted order |",
+        "|---|---|---|---|---|",
+    ]
+    L += [
+        f"| {r['model']} | {r['order']} | {r['retraction']} | {', '.join(f'{e:.1e}' for e in r['errors'])} "
+        f"| {r['fitted']:.2f} |"
+        for r in res["orders"]
+    ]
+    L += [
+        "",
+        "## Energy over long work-free runs (velocities from the carried momenta)",
+        "",
+        "| model | integrator | h [s] | steps | max abs(dE), first half | second half |",
+        "|---|---|---|---|---|---|",
+    ]
+    L += [
+        f"| {r['model']} | {r['integrator']} | {r['h']} | {r['steps']} "
+        f"| {r['first_half']:.2e} | {r['second_half']:.2e} |"
+        for r in res["energy"]
+    ]
+    L += [
+        "",
+        "## Gradient cost (snakeboard, terminal cost)",
         "",
         "| checkpoint | B x N | forward (s) | gradient (s) | ratio | temp memory N/10 -> N (bytes) |",
         "|---|---|---|---|---|---|",
     ]
-    for r in res["gradients"]:
-        mem = " -> ".join(str(v["temp_bytes"]) for v in r["memory"].values())
-        lines.append(
-            f"| {r['checkpoint']} | {r['B']} x {r['N']} | {r['forward_s']:.3f} | {r['grad_s']:.3f} "
-            f"| {r['ratio']:.2f} | {mem} |"
-        )
-    lines += [
+    L += [
+        f"| {r['checkpoint']} | {r['B']} x {r['N']} | {r['forward_s']:.3f} | {r['grad_s']:.3f} "
+        f"| {r['ratio']:.2f} "
+        f"| {' -> '.join(str(v) for v in r['temp_bytes'].values())} |"
+        for r in res["gradients"]
+    ]
+    L += [
         "",
-        "## General implicit RDP step vs the closed form (snakeboard, float64)",
+        "## Memory by save policy (snakeboard, RDP)",
         "",
-        "| case | B x N | wall (s) | ratio to the fast closed form |",
+        "| save | diagnostics | B x N | output (MB) | temp (MB) |",
+        "|---|---|---|---|---|",
+    ]
+    L += [
+        f"| {r['save']} | {r['diagnostics']} | {r['B']} x {r['N']} "
+        f"| {r['output_bytes'] / 1e6:.2f} | {r['temp_bytes'] / 1e6:.2f} |"
+        for r in res["memory"]
+    ]
+    L += [
+        "",
+        "## General implicit RDP step vs the closed-form kernel",
+        "",
+        "| case | B x N | wall (s) | ratio |",
         "|---|---|---|---|",
     ]
-    for r in res.get("general_step", []):
-        lines.append(
-            f"| {r['case']} | {r['B']} x {r['N']} | {r['wall_min']:.3f} "
-            f"| {r['ratio_to_fast_closed_form']:.2f} |"
-        )
-    lines += ["", "## Compile times (s)", ""] + [f"- {k}: {v:.2f}" for k, v in res["compile"].items()]
+    L += [
+        f"| {r['case']} | {r['B']} x {r['N']} | {r['wall_min']:.3f} | {r['ratio_to_kernel']:.1f} |"
+        for r in res["general_step"]
+    ]
+    L += ["", "## Compile times (s)", ""] + [f"- {k}: {v:.2f}" for k, v in res["compile"].items()]
     with open(path, "w") as f:
-        f.write("\n".join(lines) + "\n")
+        f.write("\n".join(L) + "\n")
 
 
-def plot(path, curves):
+def plot(path, res):
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6.5, 4.5))
-    for name, pts in curves.items():
-        ax.loglog([p["seconds_per_traj"] for p in pts], [p["error"] for p in pts], "o-", label=name)
-    ax.set_xlabel("wall time per trajectory (s)")
-    ax.set_ylabel("mean position error at 10 s (m)")
-    ax.set_title("Snakeboard work-precision")
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
+    from ldap_jax.plotting import plot_work_precision
+
+    fig, axes = plt.subplots(1, 2, figsize=(13, 4.8))
+    for ax, key in zip(axes, ("wp_10s", "wp_600s")):
+        wp = res[key]
+        curves = {
+            name: [(p["seconds_per_traj"], p["error"]) for p in pts] for name, pts in wp["curves"].items()
+        }
+        plot_work_precision(
+            curves, ax=ax, title=f"snakeboard, {wp['t_final']:g} s, {res['config']['wp_maneuvers']} maneuvers"
+        )
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
 
 
-def main():
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--quick", action="store_true", help="small sizes, under 3 minutes")
-    p.add_argument("--out", default="results", help="output directory")
-    p.add_argument("--repeats", type=int, default=None)
-    args = p.parse_args()
-    q = args.quick
-    args.repeats = args.repeats or (2 if q else 5)
-    args.batch, args.steps = (1000, 1000)
-    args.grad_batch = 100 if q else 1000
-    args.mem_steps = 10_000
-    args.wp_maneuvers = 64 if q else 256  # batched, as a sweep runs them (per-step overhead amortised)
-    args.wp_steps = [50, 200, 800] if q else [25, 50, 100, 200, 400, 800, 1600, 3200]
-    args.wp_tols = [1e-4, 1e-7] if q else [1e-3, 1e-4, 1e-5, 1e-6, 1e-7, 1e-8, 1e-9]
+SECTIONS = (
+    "headline",
+    "compiled_c",
+    "throughput",
+    "wp_10s",
+    "wp_600s",
+    "orders",
+    "energy",
+    "gradients",
+    "memory",
+    "general_step",
+    "compile",
+)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--quick", action="store_true", help="small sizes (a few minutes)")
+    p.add_argument("--out", default="results", help="output directory (default: results)")
+    p.add_argument("--repeats", type=int, default=None, help="timed repeats (default: 5, quick 2)")
+    p.add_argument("--only", default=None, help=f"comma-separated sections among {', '.join(SECTIONS)}")
+    args = p.parse_args(argv)
+    if args.repeats is not None and args.repeats < 1:
+        p.error("--repeats must be a positive integer")
+    only = SECTIONS if args.only is None else tuple(s.strip() for s in args.only.split(","))
+    bad = [s for s in only if s not in SECTIONS]
+    if bad:
+        p.error(f"--only: unknown sections {bad}; choose among {', '.join(SECTIONS)}")
+    if os.path.exists(args.out) and not os.path.isdir(args.out):
+        p.error(f"--out {args.out} exists and is not a directory")
     os.makedirs(args.out, exist_ok=True)
-    t_start = time.perf_counter()
+    cfg = Config.for_run(args.quick, args.repeats)
+    t0 = time.perf_counter()
 
     def log(msg):
-        print(f"[{time.perf_counter() - t_start:6.1f}s] {msg}", flush=True)
+        print(f"[{time.perf_counter() - t0:7.1f}s] {msg}", flush=True)
 
     res = {
         "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
-        f"jax {jax.__version__}, {jax.devices()[0].platform}",
-        "quick": q,
+        f"jax {jax.__version__}, "
+        f"{jax.devices()[0].platform}",
+        "config": dataclasses.asdict(cfg),
     }
-    if q:  # quick: throughput at a reduced batch except for the headline configuration
-        args_tp = argparse.Namespace(**{**vars(args), "batch": 200, "steps": 500})
-    else:
-        args_tp = args
-    log("headline (snakeboard RDP, B = N = 1000)")
-    res["headline"] = headline(args, log)
-    log("compiled C baseline (same step, same maneuvers)")
-    res["compiled_c"] = compiled_c(args, res["headline"], log)
-    log("compile times")
-    res["compile"] = compile_times(log)
-    log("forward throughput")
-    res["throughput"] = throughput(args_tp, log)
-    log("diffrax peers")
-    res["peers"] = peers(args, log)
-    log("gradients")
-    res["gradients"] = gradients(args, log)
-    log("general step vs closed form")
-    res["general_step"] = general_step(args, log)
-    log("work-precision")
-    res["work_precision"], res["work_precision_cost"] = work_precision(args, log)
-    res["total_seconds"] = time.perf_counter() - t_start
+    runs = {
+        "headline": lambda: headline(cfg, log),
+        "compiled_c": lambda: compiled_c(cfg, res.get("headline", []), log),
+        "throughput": lambda: throughput(cfg, log),
+        "wp_10s": lambda: work_precision(cfg, 10.0, cfg.wp_steps_10s, log),
+        "wp_600s": lambda: work_precision(cfg, 600.0, cfg.wp_steps_600s, log),
+        "orders": lambda: orders(cfg, log),
+        "energy": lambda: energy(cfg, log),
+        "gradients": lambda: gradients(cfg, log),
+        "memory": lambda: memory(cfg, log),
+        "general_step": lambda: general_step(cfg, log),
+        "compile": lambda: compile_times(cfg, log),
+    }
+    for name in SECTIONS:
+        if name in only:
+            log(name)
+            res[name] = runs[name]()
+            lj.trim_compilation_cache()
+    res["total_seconds"] = time.perf_counter() - t0
     with open(os.path.join(args.out, "bench.json"), "w") as f:
         json.dump(res, f, indent=1, default=str)
-    write_markdown(os.path.join(args.out, "bench.md"), res)
-    plot(os.path.join(args.out, "work_precision.png"), res["work_precision"])
-    log(f"wrote {args.out}/bench.json, bench.md, work_precision.png")
+    if set(SECTIONS) <= set(res):
+        write_markdown(os.path.join(args.out, "bench.md"), res)
+        plot(os.path.join(args.out, "work_precision.png"), res)
+    log(
+        f"wrote {args.out}/bench.json"
+        + (", bench.md, work_precision.png" if set(SECTIONS) <= set(res) else "")
+    )
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

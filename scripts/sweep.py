@@ -17,8 +17,8 @@ host device per core (``--cpu-devices``), so both cores of a 2-core machine work
 from __future__ import annotations
 
 import argparse
+import math
 import os
-import sys
 import time
 
 # Failures are data in the study (result codes); an in-jit runtime check that fired would raise
@@ -27,35 +27,143 @@ import time
 os.environ.setdefault("EQX_ON_ERROR", "nan")
 
 
+#: The names of ``ldap_jax.study.METHODS`` and ``MODELS``, spelled out so that the flags are checked
+#: before JAX is imported (seconds); tests/test_faults.py checks that they match the library's.
+METHOD_NAMES = (
+    "rdp",
+    "rdp4",
+    "rdp6",
+    "rdp_a0",
+    "rdp_a1",
+    "rdp_cayley",
+    "rdp_a0_cayley",
+    "rdp_a1_cayley",
+    "gni",
+    "gni_folded",
+    "dla",
+    "rk2",
+    "rk4",
+)
+MODEL_NAMES = ("snakeboard", "car")
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {text!r}") from None
+    if not (value > 0 and math.isfinite(value)):
+        raise argparse.ArgumentTypeError(f"must be a positive finite number, got {text!r}")
+    return value
+
+
 def _duration(text: str) -> float:
+    """``10``, ``10s``, ``10min`` or ``10m`` (minutes) -> seconds."""
     t = text.strip().lower()
-    for suffix, scale in (("min", 60.0), ("m", 60.0), ("s", 1.0)):
+    scale = 1.0
+    for suffix, factor in (("min", 60.0), ("m", 60.0), ("s", 1.0)):
         if t.endswith(suffix):
-            return float(t[: -len(suffix)]) * scale
-    return float(t)
+            t, scale = t[: -len(suffix)], factor
+            break
+    try:
+        value = float(t) * scale
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be durations like 10s, 10min or 600, got {text!r}") from None
+    if not (value > 0 and math.isfinite(value)):
+        raise argparse.ArgumentTypeError(f"durations must be positive and finite, got {text!r}")
+    return value
+
+
+def _list(item):
+    """A comma-separated list of ``item``s (non-empty)."""
+
+    def parse(text: str):
+        parts = [p.strip() for p in text.split(",")]
+        if not parts or any(not p for p in parts):
+            raise argparse.ArgumentTypeError(
+                f"must be a comma-separated list without empty entries, got {text!r}"
+            )
+        return tuple(item(p) for p in parts)
+
+    return parse
+
+
+def _name(choices):
+    def parse(text: str) -> str:
+        if text not in choices:
+            raise argparse.ArgumentTypeError(f"unknown name {text!r}; choose from {', '.join(choices)}")
+        return text
+
+    return parse
+
+
+def _models(text: str) -> tuple[str, ...]:
+    return MODEL_NAMES if text.strip() == "all" else _list(_name(MODEL_NAMES))(text)
 
 
 def parse_args(argv=None):
+    """Parse and check every flag (exit status 2 and a message naming the flag on a bad one),
+    before JAX is imported and before any computation."""
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--quick", action="store_true", help="small run: snakeboard, 32 maneuvers, 5 methods")
     p.add_argument("--out", default="results", help="output directory (default: results)")
-    p.add_argument("--methods", default=None, help="comma-separated names (default: all; see --list)")
-    p.add_argument("--resolutions", default=None, help="comma-separated N (default 250,500,1000,2000,4000)")
-    p.add_argument("--runs", type=int, default=None, help="maneuvers per model (default 1000)")
     p.add_argument(
-        "--duration", default=None, help="comma-separated durations, e.g. 10s,10min or 10,600 (default both)"
+        "--methods",
+        type=_list(_name(METHOD_NAMES)),
+        default=None,
+        help="comma-separated names (default: all; see --list)",
     )
-    p.add_argument("--model", default=None, help="snakeboard, car or all (default all)")
+    p.add_argument(
+        "--resolutions",
+        type=_list(_positive_int),
+        default=None,
+        help="comma-separated N (default 250,500,1000,2000,4000)",
+    )
+    p.add_argument("--runs", type=_positive_int, default=None, help="maneuvers per model (default 1000)")
+    p.add_argument(
+        "--duration",
+        type=_list(_duration),
+        default=None,
+        help="comma-separated durations, e.g. 10s,10min or 10,600 (default both)",
+    )
+    p.add_argument("--model", type=_models, default=None, help="snakeboard, car or all (default all)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--repeats", type=int, default=None, help="timed repeats per point (default 3)")
-    p.add_argument("--reference-step", type=float, default=None, help="RK4 reference step (default 5e-3)")
-    p.add_argument("--cpu-devices", type=int, default=os.cpu_count() or 1, help="XLA host devices on CPU")
+    p.add_argument("--repeats", type=_positive_int, default=None, help="timed repeats per point (default 3)")
+    p.add_argument(
+        "--reference-step", type=_positive_float, default=None, help="RK4 reference step (default 5e-3)"
+    )
+    p.add_argument(
+        "--cpu-devices", type=_positive_int, default=os.cpu_count() or 1, help="XLA host devices on CPU"
+    )
     p.add_argument("--list", action="store_true", help="list the method names and exit")
-    return p.parse_args(argv)
+    args = p.parse_args(argv)
+    if not args.list:
+        # the output folder is checked (and created) before the study, not after it
+        if os.path.exists(args.out) and not os.path.isdir(args.out):
+            p.error(f"argument --out: {args.out!r} exists and is not a directory")
+        try:
+            os.makedirs(args.out, exist_ok=True)
+        except OSError as err:
+            p.error(f"argument --out: cannot create {args.out!r}: {err}")
+    args.error = p.error
+    return args
 
 
 def main(argv=None) -> int:
     args = parse_args(argv)
+    if args.list:
+        print("\n".join(METHOD_NAMES))
+        return 0
     flags = os.environ.get("XLA_FLAGS", "")
     if "xla_force_host_platform_device_count" not in flags and args.cpu_devices > 1:
         os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={args.cpu_devices}".strip()
@@ -65,11 +173,8 @@ def main(argv=None) -> int:
     jax.config.update("jax_enable_x64", True)
     from tqdm import tqdm
 
-    from ldap_jax import sweeps
+    from ldap_jax import study as sweeps
 
-    if args.list:
-        print("\n".join(sweeps.METHODS))
-        return 0
     if args.quick:
         defaults = dict(
             models=("snakeboard",),
@@ -86,29 +191,24 @@ def main(argv=None) -> int:
             runs=1000,
             repeats=3,
         )
+    for key, value in (
+        ("models", args.model),
+        ("methods", args.methods),
+        ("resolutions", args.resolutions),
+        ("runs", args.runs),
+        ("repeats", args.repeats),
+    ):
+        if value is not None:
+            defaults[key] = value
     try:
-        if args.model is not None:
-            defaults["models"] = tuple(sweeps.MODELS) if args.model == "all" else tuple(args.model.split(","))
-        if args.methods is not None:
-            defaults["methods"] = tuple(m.strip() for m in args.methods.split(","))
-        if args.resolutions is not None:
-            defaults["resolutions"] = tuple(int(n) for n in args.resolutions.split(","))
-        if args.runs is not None:
-            defaults["runs"] = args.runs
-        if args.repeats is not None:
-            defaults["repeats"] = args.repeats
-        durations = (
-            (10.0, 600.0) if args.duration is None else tuple(map(_duration, args.duration.split(",")))
-        )
         config = sweeps.StudyConfig(
-            durations=durations,
+            durations=(10.0, 600.0) if args.duration is None else args.duration,
             seed=args.seed,
-            reference_step=args.reference_step or 5e-3,
+            reference_step=5e-3 if args.reference_step is None else args.reference_step,
             **defaults,
         )
-    except ValueError as err:
-        print(f"sweep.py: {err}", file=sys.stderr)
-        return 2
+    except (TypeError, ValueError) as err:
+        args.error(f"the settings are inconsistent: {err}")
 
     print(
         f"devices: {len(jax.devices())} x {jax.devices()[0].platform}; models {config.models}; "
@@ -120,7 +220,6 @@ def main(argv=None) -> int:
     rows = sweeps.run_study(config, progress=bar, log=tqdm.write)
     elapsed = time.perf_counter() - start
 
-    os.makedirs(args.out, exist_ok=True)
     csv_path = os.path.join(args.out, "sweep.csv")
     sweeps.write_csv(rows, csv_path)
     ratios = sweeps.runtime_ratios(rows)

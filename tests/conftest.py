@@ -1,10 +1,40 @@
 import jax
+import pytest
 
 import ldap_jax as lj
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")
 jax.config.update("jax_numpy_rank_promotion", "raise")
+
+#: Tests that read the same per-worker results (tests/helpers.py's caches, a module's cached runs)
+#: run on the same xdist worker (``--dist loadgroup``): module file name -> group.
+_GROUPS = {
+    "test_convergence.py": "convergence",  # helpers.convergence_case / convergence_runs
+    "test_dla_gni.py": "convergence",
+    "test_closed_form.py": "closed_form",  # its _runs, helpers.sleigh_newton_run
+}
+
+
+def _module_fixtures(item) -> list[str]:
+    info = getattr(item, "_fixtureinfo", None)
+    if info is None:
+        return []
+    return sorted(name for name, defs in info.name2fixturedefs.items() if defs and defs[-1].scope == "module")
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        group = _GROUPS.get(item.path.name)
+        if item.path.name == "test_general.py" and item.name == "test_sleigh_energy_and_momentum_equation":
+            group = "closed_form"  # helpers.sleigh_newton_run
+        # a module-scoped fixture is computed once per worker: keep its users together
+        scoped = _module_fixtures(item)
+        if group is None and scoped:
+            group = f"{item.path.stem}:{','.join(scoped)}"
+        if group is not None:
+            item.add_marker(pytest.mark.xdist_group(group))
 
 
 def pytest_runtest_teardown(item, nextitem):

@@ -4,7 +4,19 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import fitted_order, index, maneuvers, systems
+from helpers import (
+    RACER,
+    SLEIGH,
+    fitted_order,
+    index,
+    maneuvers,
+    reference_batch,
+    simulate_ns,
+    simulate_over_alphas,
+    sleigh_batch,
+    sleigh_newton_run,
+    systems,
+)
 
 import ldap_jax as lj
 from ldap_jax.integrators import RDP
@@ -82,41 +94,44 @@ def test_derived_continuous_equations_equal_hand_written(name):
         np.testing.assert_allclose(qd_user, qd_model, atol=1e-12)
 
 
-@pytest.mark.parametrize("alpha", [0.0, 0.5, 1.0])
 @pytest.mark.parametrize("retraction", ["exp", "cayley"])
-def test_general_step_on_user_description_equals_closed_form(alpha, retraction):
+@pytest.mark.parametrize("name", list(SYSTEMS))
+def test_general_step_on_user_description_equals_closed_form(name, retraction):
     """1000-step trajectories of the user-described car and snakeboard through the general
-    Newton step match the hand-derived closed forms to 1e-10."""
-    for name, model in SYSTEMS.items():
-        q0, qdot0, ctl = index(maneuvers(model, 1, seed=31), 0)
-        kw = dict(t_final=20.0, n_steps=1000)
-        integrator = RDP(alpha=alpha, retraction=retraction)
-        closed = lj.simulate(model, q0, qdot0, ctl, integrator=integrator, **kw)
-        general = lj.simulate(USER[name], q0, qdot0, ctl, integrator=integrator, **kw)
-        assert not bool(closed.failed) and not bool(general.failed)
-        assert bool(jnp.all(general.converged))
-        np.testing.assert_allclose(general.q, closed.q, rtol=0, atol=1e-10)
+    Newton step match the hand-derived closed forms to 1e-10, for alpha in {0, 1/2, 1}."""
+    model = SYSTEMS[name]
+    batch = maneuvers(model, 1, seed=31)
+    alphas = (0.0, 0.5, 1.0)
+    closed = simulate_over_alphas(model, batch, alphas, 20.0, 1000, retraction=retraction)
+    general = simulate_over_alphas(USER[name], batch, alphas, 20.0, 1000, retraction=retraction)
+    assert RDP().uses_kernel(model) and not RDP().uses_kernel(USER[name])
+    for alpha, c, g in zip(alphas, closed, general):
+        assert not bool(jnp.any(c.failed)) and not bool(jnp.any(g.failed)), alpha
+        assert bool(jnp.all(g.converged))
+        np.testing.assert_allclose(g.q, c.q, rtol=0, atol=1e-10, err_msg=str(alpha))
+        np.testing.assert_allclose(g.qdot, c.qdot, rtol=0, atol=1e-10, err_msg=str(alpha))
+
+
+class PrintedSign(RDP):
+    """RDP with the connection term of (23) as (25) prints it (+A instead of -A)."""
+
+    def _residual(self, system, h, r, u, xi, pu_force, mu_in):
+        hor, vert = super()._residual(system, h, r, u, xi, pu_force, mu_in)
+        a = self._alpha(r.dtype)
+        mu = jax.grad(system.reduced_lagrangian, argnums=2)(r + a * h * u, u, xi)
+        jump = self._dtau(h * xi).T @ mu - mu_in
+        return hor + 2 * system.connection(r).T @ jump, vert
 
 
 def test_sign_of_the_connection_term():
     """(23)'s sign converges to the continuous solution; (25) as printed (+A) does not."""
-
-    class PrintedSign(RDP):
-        def _residual_parts(self, system, h, r, u, xi, b, mu_in):
-            hor, vert = super()._residual_parts(system, h, r, u, xi, b, mu_in)
-            a = jnp.asarray(self.alpha, r.dtype)
-            _, _, mu = jax.grad(system.reduced_lagrangian, argnums=(0, 1, 2))(r + a * h * u, u, xi)
-            jump = self._dtau(h * xi).T @ mu - mu_in
-            return hor + 2 * system.connection(r).T @ jump, vert
-
     car = USER["car"]
-    q0, qdot0, ctl = index(maneuvers(SYSTEMS["car"], 1, seed=3), 0)
-    ref = lj.reference(car, q0, qdot0, ctl, jnp.array([0.0, 4.0]))
-    errs = {"(23)": [], "(25) printed": []}
-    for n in (100, 200):
-        for label, integ in (("(23)", RDP()), ("(25) printed", PrintedSign(solver="newton"))):
-            traj = lj.simulate(car, q0, qdot0, ctl, t_final=4.0, n_steps=n, integrator=integ)
-            errs[label].append(float(jnp.linalg.norm(traj.q[-1, :3] - ref.q[-1, :3])))
+    batch = maneuvers(SYSTEMS["car"], 1, seed=3)
+    ref = lj.reference(car, *index(batch, 0), jnp.array([0.0, 4.0]))
+    errs = {}
+    for label, integ in (("(23)", RDP()), ("(25) printed", PrintedSign(solver="newton"))):
+        runs = simulate_ns(car, integ, batch, 4.0, (100, 200))
+        errs[label] = [float(np.linalg.norm(runs[n].q[0, -1, :3] - ref.q[-1, :3])) for n in (100, 200)]
     print(errs)
     assert fitted_order([1, 0.5], errs["(23)"]) > 1.9
     assert min(errs["(25) printed"]) > 100 * errs["(23)"][-1]
@@ -124,15 +139,11 @@ def test_sign_of_the_connection_term():
 
 
 def _sleigh_case():
-    sleigh = lj.chaplygin_sleigh(m=1.0, I=0.2, a=0.3)
-    ctl = lj.Sinusoids(amplitude=jnp.zeros((0, 1)), frequency=jnp.zeros((0, 1)), phase=jnp.zeros((0, 1)))
-    q0 = jnp.array([0.0, 0.0, 0.4])
-    qdot0 = sleigh.qdot_from_velocities(q0, jnp.array([1.5, 0.5]), jnp.zeros(0))
-    return sleigh, q0, qdot0, ctl
+    q0, qdot0, ctl = index(sleigh_batch(), 0)
+    return SLEIGH, q0, qdot0, ctl
 
 
 def _racer_case(seed=0):
-    racer = lj.roller_racer()
     rng = np.random.default_rng(seed)
     ctl = lj.Sinusoids(
         amplitude=[[rng.uniform(0.2, 0.5), rng.uniform(0.0, 0.2)]],
@@ -140,8 +151,8 @@ def _racer_case(seed=0):
         phase=[[rng.uniform(0, 6), 0.0]],
     )
     q0 = jnp.array([0.0, 0.0, rng.uniform(-3, 3), rng.uniform(-0.3, 0.3)])
-    qdot0 = racer.qdot_from_velocities(q0, jnp.asarray(rng.uniform(-0.3, 0.3, size=2)), jnp.zeros(1))
-    return racer, q0, qdot0, ctl
+    qdot0 = RACER.qdot_from_velocities(q0, jnp.asarray(rng.uniform(-0.3, 0.3, size=2)), jnp.zeros(1))
+    return RACER, q0, qdot0, ctl
 
 
 @pytest.mark.parametrize("case", ["sleigh", "racer"])
@@ -164,21 +175,22 @@ def test_new_systems_reduced_equals_full_lagrange_dalembert(case):
 @pytest.mark.parametrize("case", ["sleigh", "racer"])
 def test_new_systems_converge_with_order_two(case):
     system, q0, qdot0, ctl = (_sleigh_case if case == "sleigh" else _racer_case)()
+    batch = jax.tree_util.tree_map(lambda x: x[None], (q0, qdot0, ctl))
     t_final = 6.0
-    ref = lj.reference(system, q0, qdot0, ctl, jnp.linspace(0.0, t_final, 41))
+    ref = reference_batch(system, batch, jnp.linspace(0.0, t_final, 41))
     variants = [(RDP(), 2), (lj.RK4(), 4)]
     if (
         case == "sleigh"
     ):  # the exact dcay^-1 through the Newton step (covered for the racer by the gradient test)
         variants.insert(1, (RDP(retraction="cayley", dtau_order=None), 2))
+    ns = (40, 80, 160)
     for integrator, order in variants:
+        runs = simulate_ns(system, integrator, batch, t_final, ns)
         errs = []
-        ns = (40, 80, 160)
         for n in ns:
-            traj = lj.simulate(system, q0, qdot0, ctl, t_final=t_final, n_steps=n, integrator=integrator)
-            assert not bool(traj.failed)
-            q = traj.q[:: n // 40]
-            errs.append(float(jnp.max(jnp.linalg.norm(q[:, :3] - ref.q[:, :3], axis=1))))
+            assert not bool(np.any(runs[n].failed))
+            q = runs[n].q[:, :: n // 40]
+            errs.append(float(np.max(np.linalg.norm(q[..., :3] - np.asarray(ref.q)[..., :3], axis=-1))))
         p = fitted_order([t_final / n for n in ns], errs)
         print(case, integrator, errs, p)
         assert p > order - 0.15
@@ -187,14 +199,13 @@ def test_new_systems_converge_with_order_two(case):
 def test_sleigh_energy_and_momentum_equation():
     """The unforced sleigh conserves energy; RDP keeps it over 10^4 steps and satisfies its
     discrete momentum equations (21) to round-off."""
-    sleigh, q0, qdot0, ctl = _sleigh_case()
-    traj = lj.simulate(sleigh, q0, qdot0, ctl, t_final=200.0, n_steps=10_000)
-    assert not bool(traj.failed)
+    traj = sleigh_newton_run("exp")
+    assert not bool(jnp.any(traj.failed))
     e = np.asarray(traj.energy)
-    assert np.abs(e - e[0]).max() < 1e-6 * e[0]
+    assert np.abs(e - e[:, :1]).max() < 1e-6 * e[:, 0].min()
     assert float(jnp.max(traj.step_residual)) < 1e-12
     # the continuous momentum is not conserved: the sleigh's momentum changes
-    assert float(jnp.ptp(traj.momentum[:, 0])) > 1e-2
+    assert float(jnp.min(jnp.ptp(traj.momentum[..., 0], axis=1))) > 1e-2
 
 
 def test_roller_racer_momentum_and_energy():
@@ -211,30 +222,29 @@ def test_roller_racer_momentum_and_energy():
 def test_gradient_through_general_implicit_step():
     racer, q0, qdot0, ctl = _racer_case(2)
 
-    @jax.jit
     def loss(amp):
         c = lj.Sinusoids(amplitude=amp, frequency=ctl.frequency, phase=ctl.phase)
         traj = lj.simulate(racer, q0, qdot0, c, t_final=3.0, n_steps=150, integrator=RDP(dtau_order=None))
         return jnp.sum(traj.q[-1, :3] ** 2)
 
+    value_and_grad = jax.jit(jax.value_and_grad(loss))
     amp = ctl.amplitude
-    grad = np.asarray(jax.grad(loss)(amp)).ravel()
+    grad = np.asarray(value_and_grad(amp)[1]).ravel()
     eps = 1e-6
     fd = []
     for i in range(amp.size):
         e = jnp.zeros(amp.size).at[i].set(eps).reshape(amp.shape)
-        fd.append((float(loss(amp + e)) - float(loss(amp - e))) / (2 * eps))
+        fd.append((float(value_and_grad(amp + e)[0]) - float(value_and_grad(amp - e)[0])) / (2 * eps))
     np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-5 * np.abs(fd).max())
 
 
 def test_vmap_over_64_maneuvers_equals_loop_for_user_system():
-    racer = lj.roller_racer()
     keys = jax.random.split(jax.random.PRNGKey(0), 64)
     amps = jax.vmap(lambda k: jax.random.uniform(k, (1, 1), minval=0.1, maxval=0.5))(keys)
     ctl = lj.Sinusoids(amplitude=amps, frequency=jnp.full((64, 1, 1), 2.0), phase=jnp.zeros((64, 1, 1)))
     q0 = jnp.zeros(4)
     qdot0 = jnp.zeros(4)
-    run = jax.jit(lambda c: lj.simulate(racer, q0, qdot0, c, t_final=2.0, n_steps=50).q)
+    run = jax.jit(lambda c: lj.simulate(RACER, q0, qdot0, c, t_final=2.0, n_steps=50).q)
     batched = jax.vmap(run)(ctl)
     for i in range(0, 64, 7):
         np.testing.assert_allclose(batched[i], run(index(ctl, i)), rtol=1e-12, atol=1e-13)

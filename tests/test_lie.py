@@ -17,14 +17,17 @@ VS = [jnp.asarray(rng.normal(size=3)) for _ in range(5)] + [
 ]
 
 
-def _mat(g):  # (theta, x, y) -> 3x3
-    c, s = np.cos(g[0]), np.sin(g[0])
-    return np.array([[c, -s, g[1]], [s, c, g[2]], [0, 0, 1]])
+def _mat(g):  # pose (x, y, theta) -> 3x3
+    c, s = np.cos(g[2]), np.sin(g[2])
+    return np.array([[c, -s, g[0]], [s, c, g[1]], [0, 0, 1]])
+
+
+def _pose(m):  # 3x3 -> pose (x, y, theta)
+    return np.array([m[0, 2], m[1, 2], np.arctan2(m[1, 0], m[0, 0])])
 
 
 def _inv(g):
-    c, s = jnp.cos(g[0]), jnp.sin(g[0])
-    return jnp.stack([-g[0], -(c * g[1] + s * g[2]), s * g[1] - c * g[2]])
+    return lie.inverse(g)
 
 
 @pytest.mark.parametrize("v", VS)
@@ -56,7 +59,7 @@ def test_agrees_with_jaxlie(v):
 
 
 def _check_against_jaxlie(v):
-    tj = jnp.array([v[1], v[2], v[0]])
+    tj = lie.tangent_to_jaxlie(v)
     gj = jaxlie.SE2.exp(tj)
     g = SE2.exp(v)
     np.testing.assert_allclose(g.as_matrix(), gj.as_matrix(), atol=1e-12)
@@ -66,6 +69,41 @@ def _check_against_jaxlie(v):
     lj_log = gj.log()
     np.testing.assert_allclose(g.log(), jnp.array([lj_log[2], lj_log[0], lj_log[1]]), atol=1e-12)
     np.testing.assert_allclose(g.adjoint()[1:, 1:], gj.adjoint()[:2, :2], atol=1e-12)
+
+
+@pytest.mark.parametrize("v", VS)
+def test_poses_compose_invert_and_retract_as_matrices(v):
+    """compose, inverse and retract on poses (x, y, theta) are the matrix product, inverse and
+    g tau(v)."""
+    g, h = jnp.asarray(rng.normal(size=3)), jnp.asarray(rng.normal(size=3))
+    np.testing.assert_allclose(_mat(lie.compose(g, h)), _mat(g) @ _mat(h), atol=1e-12)
+    np.testing.assert_allclose(_mat(lie.inverse(g)), np.linalg.inv(_mat(g)), atol=1e-12)
+    np.testing.assert_allclose(_mat(lie.compose(g, lie.inverse(g))), np.eye(3), atol=1e-12)
+    for retraction, tau in (("exp", lie.exp), ("cayley", lie.cay)):
+        np.testing.assert_allclose(lie.retract(v, retraction), tau(v), atol=0)
+    # SE2 reads and writes the same poses
+    np.testing.assert_allclose(SE2.from_xy_theta(*g).as_matrix(), _mat(g), atol=1e-12)
+    back = SE2.from_xy_theta(*g).as_xy_theta()
+    np.testing.assert_allclose(back[:2], g[:2], atol=1e-15)
+    np.testing.assert_allclose(np.exp(1j * float(back[2])), np.exp(1j * float(g[2])), atol=1e-14)
+    assert -np.pi < float(back[2]) <= np.pi
+    ge = SE2.exp(v).as_xy_theta()
+    np.testing.assert_allclose(ge, _pose(_mat(lie.exp(v))), atol=1e-12)
+    np.testing.assert_allclose(ge[:2], lie.exp(v)[:2], atol=1e-12)
+
+
+@pytest.mark.parametrize("v", VS)
+def test_jaxlie_conversions(v):
+    with jax.numpy_dtype_promotion("standard"):  # jaxlie mixes weak types internally
+        t = lie.tangent_to_jaxlie(v)
+        np.testing.assert_allclose(t, [v[1], v[2], v[0]], atol=0)
+        np.testing.assert_allclose(lie.tangent_from_jaxlie(t), v, atol=0)
+        gj = jaxlie.SE2.exp(t)
+        g = SE2.from_jaxlie(gj)
+        np.testing.assert_allclose(g.as_matrix(), gj.as_matrix(), atol=1e-12)
+        np.testing.assert_allclose(g.as_matrix(), SE2.exp(v).as_matrix(), atol=1e-12)
+        np.testing.assert_allclose(g.to_jaxlie().as_matrix(), gj.as_matrix(), atol=0)
+        np.testing.assert_allclose(lie.tangent_from_jaxlie(gj.log()), g.log(), atol=1e-12)
 
 
 def test_group_axioms():

@@ -9,7 +9,7 @@ import pytest
 from helpers import maneuvers, systems
 
 import ldap_jax as lj
-from ldap_jax import sweeps
+from ldap_jax import study
 from ldap_jax._linalg import solve
 
 SYSTEMS = systems()
@@ -74,7 +74,7 @@ def _lowered_text(system, integrator, grad=False):
 @pytest.mark.parametrize("method", ["rdp", "gni", "gni_folded", "dla", "rk4"])
 def test_no_lapack_in_compiled_rollouts(model, method):
     system = SYSTEMS[model]
-    integrator = sweeps.make_integrator(method)
+    integrator = study.make_integrator(method)
     text = _lowered_text(system, integrator)
     assert "lapack" not in text.lower()
     if method in ("rdp", "dla"):

@@ -131,7 +131,15 @@ def _terminal_errors(system, integrator, batch, t_final, ns):
     for n in ns:
         q = jax.vmap(
             lambda a, b, c, n=n: lj.simulate(
-                system, a, b, c, t_final=t_final, n_steps=n, integrator=integrator, save="final", diagnostics=False
+                system,
+                a,
+                b,
+                c,
+                t_final=t_final,
+                n_steps=n,
+                integrator=integrator,
+                save="final",
+                diagnostics=False,
             ).q[-1]
         )(q0, qdot0, ctl)
         errs.append(float(jnp.max(jnp.linalg.norm(q[:, :3] - ref[:, :3], axis=-1))))
@@ -282,7 +290,9 @@ def test_gradient_through_order_6_matches_central_differences():
 def test_vmap_equals_loop_and_float32_keeps_float32():
     sb = SYSTEMS["snakeboard"]
     batch = maneuvers(sb, 4, seed=18)
-    run = jax.jit(lambda a, b, c: lj.simulate(sb, a, b, c, t_final=2.0, n_steps=20, integrator=lj.RDP(order=6)).q)
+    run = jax.jit(
+        lambda a, b, c: lj.simulate(sb, a, b, c, t_final=2.0, n_steps=20, integrator=lj.RDP(order=6)).q
+    )
     batched = jax.vmap(run)(*batch)
     for i in range(4):
         np.testing.assert_allclose(batched[i], run(*index(batch, i)), rtol=1e-13, atol=1e-13)

@@ -83,3 +83,38 @@ def test_initial_state_is_at_t0_whatever_ts_holds():
         lj.reference(sb, q0, qdot0, ctl, jnp.array([2.0, 1.0]))
     with pytest.raises(ValueError, match="'ts'"):
         lj.reference(sb, q0, qdot0, ctl, jnp.array([0.5, 1.0]), t0=1.0)
+
+
+def test_reference_reports_failures_and_bad_inputs():
+    """The solve stops at the singularity (RESULTS.singular, NaN at the samples it did not reach),
+    reports an exhausted step budget, and checks its inputs like simulate."""
+    sb = SYSTEMS["snakeboard"]
+    singular = lj.Sinusoids(
+        amplitude=jnp.array([[0.05], [0.02]]),
+        frequency=jnp.array([[1.0], [0.0]]),
+        phase=jnp.array([[0.0], [np.pi / 2]]),
+    )
+    ts = jnp.linspace(0.0, 10.0, 11)
+    sol = lj.reference(sb, jnp.zeros(5), jnp.zeros(5), singular, ts)
+    assert sol.result == lj.RESULTS.singular and bool(sol.failed)
+    reached = np.all(np.isfinite(np.asarray(sol.q)), axis=1)
+    assert reached[0] and not reached[-1]
+    k = int(np.argmin(reached))  # the first sample after the singularity; none reached later
+    assert not np.any(reached[k:]) and np.all(np.isnan(np.asarray(sol.qdot[k:])))
+    assert abs(float(sol.q[k - 1, 4])) < np.pi / 2
+    short = lj.reference(sb, jnp.zeros(5), jnp.zeros(5), singular, ts, max_steps=10)
+    assert short.result == lj.RESULTS.max_steps_reached
+    assert np.isnan(np.asarray(short.q[-1])).all()
+    with pytest.raises(ValueError, match="'qdot0' violates"):
+        lj.reference(sb, jnp.zeros(5), jnp.array([0.0, 1.0, 0.0, 0.0, 0.0]), singular, ts)
+    with pytest.raises(ValueError, match="'rtol'"):
+        lj.reference(sb, jnp.zeros(5), jnp.zeros(5), singular, ts, rtol=0.0)
+    with pytest.raises(ValueError, match="'max_steps'"):
+        lj.reference(sb, jnp.zeros(5), jnp.zeros(5), singular, ts, max_steps=0)
+    with pytest.raises(ValueError, match="'ts'"):
+        lj.reference(sb, jnp.zeros(5), jnp.zeros(5), singular, jnp.array([0.0, jnp.nan]))
+    # traced inputs: the bad member is reported, not raised
+    bad = jax.vmap(lambda qd: lj.reference(sb, jnp.zeros(5), qd, None, ts).result._value)(
+        jnp.stack([jnp.zeros(5), jnp.array([0.0, 1.0, 0.0, 0.0, 0.0])])
+    )
+    np.testing.assert_array_equal(bad, [0, lj.RESULTS.invalid_input._value])

@@ -1,26 +1,35 @@
-"""simulate: batching, compilation, gradients, dtypes, errors, failure reporting."""
+"""simulate: batching, compilation, gradients, dtypes, save options, errors, failure reporting.
 
+(That the closed-form kernels equal the general Newton step is tests/test_closed_form.py.)
+"""
+
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import index, maneuvers, systems
+from helpers import code, index, maneuvers, simulate_batch, systems
 
 import ldap_jax as lj
 
 SYSTEMS = systems()
 
 
+@eqx.filter_jit
+def _run(system, q0, qdot0, ctl):
+    return lj.simulate(system, q0, qdot0, ctl, t_final=3.0, n_steps=60)
+
+
 @pytest.mark.parametrize("name", list(SYSTEMS))
 def test_vmap_equals_loop(name):
     system = SYSTEMS[name]
-    man = maneuvers(system, 64, seed=2)
-    run = jax.jit(lambda a, b, c: lj.simulate(system, a, b, c, t_final=3.0, n_steps=60))
-    batched = jax.vmap(run)(*man)
-    for i in range(64):
-        single = run(*index(man, i))
+    man = maneuvers(system, 16, seed=2)
+    batched = simulate_batch(system, lj.RDP(), man, 3.0, 60)
+    for i in range(16):
+        single = _run(system, *index(man, i))
         np.testing.assert_allclose(batched.q[i], single.q, rtol=1e-13, atol=1e-13)
         np.testing.assert_allclose(batched.qdot[i], single.qdot, rtol=1e-13, atol=1e-13)
+        np.testing.assert_allclose(batched.energy[i], single.energy, rtol=1e-13, atol=1e-13)
 
 
 def test_vmap_over_model_parameters():
@@ -28,8 +37,7 @@ def test_vmap_over_model_parameters():
     q0, qdot0, ctl = index(maneuvers(SYSTEMS["snakeboard"], 1, seed=4), 0)
 
     def run(m):
-        sb = lj.Snakeboard(m=m, l=0.5, I=0.05, J=0.02)
-        return lj.simulate(sb, q0, qdot0, ctl, t_final=2.0, n_steps=50).q[-1]
+        return lj.simulate(lj.Snakeboard(m=m), q0, qdot0, ctl, t_final=2.0, n_steps=50).q[-1]
 
     batched = jax.vmap(run)(ms)
     for i, m in enumerate(ms):
@@ -46,22 +54,24 @@ def test_no_recompilation_with_new_values():
     _CountingRK4.traces = 0
     integrator = _CountingRK4()
     for seed, m, t_final in ((0, 1.0, 2.0), (1, 1.3, 3.5)):
-        sb = lj.Snakeboard(m=m, l=0.5, I=0.05, J=0.02)
+        sb = lj.Snakeboard(m=m)
         q0, qdot0, ctl = index(maneuvers(sb, 1, seed=seed), 0)
         lj.simulate(sb, q0, qdot0, ctl, t_final=t_final, n_steps=40, integrator=integrator)
     assert _CountingRK4.traces == 1
 
 
 def _fd_check(loss, x, eps=1e-6, rtol=1e-5):
-    grad = np.asarray(jax.grad(loss)(x))
+    """``jax.grad(loss)(x)`` against central differences (one compiled value-and-gradient)."""
+    value_and_grad = jax.jit(jax.value_and_grad(loss))
+    grad = np.asarray(value_and_grad(x)[1])
     flat = np.asarray(x).ravel()
     fd = np.zeros_like(flat)
     for i in range(flat.size):
         e = np.zeros_like(flat)
         e[i] = eps
         fd[i] = (
-            float(loss(jnp.asarray((flat + e).reshape(x.shape))))
-            - float(loss(jnp.asarray((flat - e).reshape(x.shape))))
+            float(value_and_grad(jnp.asarray((flat + e).reshape(x.shape)))[0])
+            - float(value_and_grad(jnp.asarray((flat - e).reshape(x.shape)))[0])
         ) / (2 * eps)
     np.testing.assert_allclose(grad.ravel(), fd, rtol=rtol, atol=rtol * np.abs(fd).max())
     return grad
@@ -76,7 +86,6 @@ def test_gradient_wrt_control_amplitudes_matches_finite_differences(name, integr
     q0, qdot0, ctl = index(maneuvers(system, 1, seed=6), 0)
     target = jnp.array([0.5, -0.3, 1.0])
 
-    @jax.jit
     def loss(amplitude):
         c = lj.Sinusoids(amplitude=amplitude, frequency=ctl.frequency, phase=ctl.phase)
         traj = lj.simulate(
@@ -90,55 +99,37 @@ def test_gradient_wrt_control_amplitudes_matches_finite_differences(name, integr
 
 @pytest.mark.parametrize("name", list(SYSTEMS))
 def test_gradient_wrt_initial_state_and_parameters(name):
+    """d/dx0 (a pure translation of the start) and d/dm (the mass, through the whole rollout) of
+    |q_N|^2, in one loss of (x0, m)."""
     system = SYSTEMS[name]
     q0, qdot0, ctl = index(maneuvers(system, 1, seed=8), 0)
 
-    def run(sys_, q):
-        return lj.simulate(sys_, q, qdot0, ctl, t_final=3.0, n_steps=150, check_constraints=False).q[-1]
+    def loss(p):
+        sys_ = eqx.tree_at(lambda s: s.m, system, p[1])
+        q = lj.simulate(
+            sys_, q0.at[0].set(p[0]), qdot0, ctl, t_final=3.0, n_steps=150, check_constraints=False
+        ).q
+        return jnp.sum(q[-1] ** 2)
 
-    # initial heading enters qdot0's constraint only through the check, so vary x0, y0 and theta0
-    # together with a rotated qdot0 would complicate things; x0 is a pure translation:
-    loss_x = jax.jit(lambda x0: jnp.sum(run(system, q0.at[0].set(x0[0])) ** 2))
-    _fd_check(loss_x, q0[:1])
-    # model parameter (mass), through the whole rollout
-    if name == "car":
-        loss_m = jax.jit(
-            lambda m: jnp.sum(
-                run(lj.Car(m=m[0], I=system.I, K=system.K, rho=system.rho, l=system.l), q0) ** 2
-            )
-        )
-    else:
-        loss_m = jax.jit(
-            lambda m: jnp.sum(run(lj.Snakeboard(m=m[0], l=system.l, I=system.I, J=system.J), q0) ** 2)
-        )
-    grad = _fd_check(loss_m, jnp.array([1.0]))
-    assert abs(grad[0]) > 1e-8
+    grad = _fd_check(loss, jnp.array([q0[0], system.m]))
+    assert abs(grad[1]) > 1e-8
 
 
-@pytest.mark.parametrize("fast_path", [True, False], ids=["fast", "general"])
-def test_checkpointed_gradient_equals_plain(fast_path):
-    """Every rematerialisation policy (per step, nested sqrt(N) chunks, chunks of 7 steps that do
-    not divide N + 1) gives the same trajectory and gradient."""
+def test_bad_checkpoint_policy_is_named():
+    # (that every policy gives the same gradient, on the kernel and the Newton step, is
+    # tests/test_closed_form.py::test_gradients_match)
     sb = SYSTEMS["snakeboard"]
     q0, qdot0, ctl = index(maneuvers(sb, 1, seed=9), 0)
-
-    def loss(amp, checkpoint):
-        c = lj.Sinusoids(amplitude=amp, frequency=ctl.frequency, phase=ctl.phase)
-        traj = lj.simulate(
-            sb, q0, qdot0, c, t_final=5.0, n_steps=300, checkpoint=checkpoint, fast_path=fast_path
-        )
-        return jnp.sum(traj.q[-1] ** 2) + jnp.sum(traj.q[150] ** 2)
-
-    g_plain = jax.grad(loss)(ctl.amplitude, False)
-    for policy in (True, "sqrt", 7):
-        np.testing.assert_allclose(jax.grad(loss)(ctl.amplitude, policy), g_plain, rtol=1e-11, atol=1e-12)
-    with pytest.raises(ValueError, match="'checkpoint'"):
-        loss(ctl.amplitude, "binomial")
+    for bad in ("binomial", -3, 2.5):
+        with pytest.raises(ValueError, match="'checkpoint'"):
+            lj.simulate(sb, q0, qdot0, ctl, t_final=5.0, n_steps=300, checkpoint=bad)
 
 
 @pytest.mark.parametrize("name", list(SYSTEMS))
-@pytest.mark.parametrize("integrator", [lj.RDP(), lj.RK4()], ids=["rdp", "rk4"])
-def test_float32_stays_float32(name, integrator):
+def test_float32_stays_float32(name):
+    """float32 in, float32 out (RK4 here; the RDP kernels and Newton step in float32 are
+    tests/test_closed_form.py::test_kernel_equals_newton_float32, RDP(order=6) tests/test_order.py)."""
+    integrator = lj.RK4()
     system = SYSTEMS[name]
     q0, qdot0, ctl = index(maneuvers(system, 1, seed=1), 0)
     ctl32 = jax.tree_util.tree_map(lambda x: x.astype(jnp.float32), ctl)
@@ -151,7 +142,16 @@ def test_float32_stays_float32(name, integrator):
         n_steps=100,
         integrator=integrator,
     )
-    for leaf in (traj.t, traj.q, traj.qdot, traj.energy, traj.work):
+    for leaf in (
+        traj.t,
+        traj.q,
+        traj.qdot,
+        traj.energy,
+        traj.work,
+        traj.momentum,
+        traj.constraint_residual,
+        traj.step_residual,
+    ):
         assert leaf.dtype == jnp.float32
     ref = lj.simulate(system, q0, qdot0, ctl, t_final=2.0, n_steps=100, integrator=integrator)
     np.testing.assert_allclose(traj.q, ref.q, rtol=1e-4, atol=1e-4)
@@ -173,43 +173,59 @@ def test_sampled_controls_reproduce_rdp_on_the_nodes():
         )
 
 
-@pytest.mark.parametrize("alpha", [0.0, 0.5, 1.0])
-@pytest.mark.parametrize("retraction", ["exp", "cayley"])
-def test_general_newton_step_equals_closed_form(alpha, retraction):
-    for system in SYSTEMS.values():
-        q0, qdot0, ctl = index(maneuvers(system, 1, seed=13), 0)
-        kw = dict(t_final=20.0, n_steps=1000)
-        a = lj.simulate(system, q0, qdot0, ctl, integrator=lj.RDP(alpha=alpha, retraction=retraction), **kw)
-        b = lj.simulate(
-            system,
-            q0,
-            qdot0,
-            ctl,
-            integrator=lj.RDP(alpha=alpha, retraction=retraction, solver="newton"),
-            **kw,
-        )
-        assert not bool(a.failed) and not bool(b.failed)
-        np.testing.assert_allclose(a.q, b.q, rtol=0, atol=1e-10)
-        np.testing.assert_allclose(a.qdot, b.qdot, rtol=0, atol=1e-10)
+def test_save_options_select_the_same_nodes():
+    """save="final", a stride and node indices return exactly those nodes of save="all";
+    diagnostics=False keeps the positions and drops the diagnostics."""
+    car = SYSTEMS["car"]
+    q0, qdot0, ctl = index(maneuvers(car, 1, seed=14), 0)
+    kw = dict(t_final=3.0, n_steps=60)
+    full = lj.simulate(car, q0, qdot0, ctl, **kw)
+    assert full.q.shape == (61, 5) and full.t.shape == (61,)
+    final = lj.simulate(car, q0, qdot0, ctl, save="final", **kw)
+    np.testing.assert_array_equal(final.q, full.q[-1:])
+    np.testing.assert_array_equal(final.work, full.work[-1:])
+    strided = lj.simulate(car, q0, qdot0, ctl, save=20, **kw)
+    np.testing.assert_array_equal(strided.t, full.t[::20])
+    np.testing.assert_array_equal(strided.q, full.q[::20])
+    np.testing.assert_array_equal(strided.energy, full.energy[::20])
+    picked = lj.simulate(car, q0, qdot0, ctl, save=[0, 7, 60], **kw)
+    np.testing.assert_array_equal(picked.q, full.q[np.array([0, 7, 60])])
+    lean = lj.simulate(car, q0, qdot0, ctl, save=20, diagnostics=False, **kw)
+    np.testing.assert_array_equal(lean.q, strided.q)
+    assert lean.energy is None and lean.work is None and lean.step_residual is None
+    with pytest.raises(ValueError, match="energy_balance"):
+        lean.energy_balance  # noqa: B018
+    for bad in (7, 0, "some", [3, 2], [61]):
+        with pytest.raises(ValueError, match="'save'"):
+            lj.simulate(car, q0, qdot0, ctl, save=bad, **kw)
+
+
+SINGULAR = lj.Sinusoids(
+    amplitude=jnp.array([[0.05], [0.02]]),
+    frequency=jnp.array([[1.0], [0.0]]),
+    phase=jnp.array([[0.0], [np.pi / 2]]),
+)
 
 
 def test_snakeboard_singularity_is_reported():
     """A constant steering torque drives phi through pi/2: the failure is flagged, not NaN-silent."""
     sb = SYSTEMS["snakeboard"]
-    ctl = lj.Sinusoids(amplitude=[[0.05], [0.02]], frequency=[[1.0], [0.0]], phase=[[0.0], [np.pi / 2]])
     q0 = jnp.zeros(5)
     for integrator in (lj.RDP(), lj.RK4()):
-        traj = lj.simulate(sb, q0, jnp.zeros(5), ctl, t_final=10.0, n_steps=1000, integrator=integrator)
-        assert int(traj.result) == 2 and bool(traj.failed)
+        traj = lj.simulate(sb, q0, jnp.zeros(5), SINGULAR, t_final=10.0, n_steps=1000, integrator=integrator)
+        assert traj.result == lj.RESULTS.singular and bool(traj.failed)
+        assert int(traj.result._value) == 2
         k = int(traj.failure_index)
         assert 0 < k < 1000
+        # nodes up to the failed step's start are finite, every later node is NaN
         assert np.all(np.isfinite(np.asarray(traj.q[: k + 1]))) and np.all(
-            np.isnan(np.asarray(traj.q[k + 2 :]))
+            np.isnan(np.asarray(traj.q[k + 1 :]))
         )
+        assert np.all(np.isnan(np.asarray(traj.energy[k + 1 :])))
         assert abs(float(traj.q[k, 4])) > 1.4
-        with pytest.raises(Exception, match="integration failed"):
+        with pytest.raises(Exception, match="singular configuration"):
             lj.simulate(
-                sb, q0, jnp.zeros(5), ctl, t_final=10.0, n_steps=1000, integrator=integrator, throw=True
+                sb, q0, jnp.zeros(5), SINGULAR, t_final=10.0, n_steps=1000, integrator=integrator, throw=True
             )
 
 
@@ -224,15 +240,39 @@ def test_failure_does_not_poison_gradients_of_other_batch_members():
         traj = lj.simulate(sb, q0, jnp.zeros(5), lj.Sinusoids(a, f, p), t_final=10.0, n_steps=500)
         return traj.q[-1, 0], traj.failed
 
-    x, failed = jax.vmap(final_x)(amp, freq, phase)
-    assert not bool(failed[0]) and bool(failed[1]) and np.isfinite(float(x[0]))
-    g = jax.grad(lambda a: jax.vmap(final_x)(a, freq, phase)[0][0])(amp)
-    assert np.all(np.isfinite(np.asarray(g)))
+    x, failed = jax.jit(jax.vmap(final_x))(amp, freq, phase)
+    assert not bool(failed[0]) and bool(failed[1]) and np.isfinite(float(x[0])) and np.isnan(float(x[1]))
+    g = jax.jit(jax.grad(lambda a: jax.vmap(final_x)(a, freq, phase)[0][0]))(amp)
+    assert np.all(np.isfinite(np.asarray(g))) and float(jnp.max(jnp.abs(g[0]))) > 0
+
+
+def test_documented_sequence_inputs():
+    """Where the library documents Python sequences and numbers, they work like arrays: q0/qdot0
+    as lists ("lists and integer arrays are converted"), reference times as a list ("or just
+    [t_final]"), parameters as Python numbers; a string is refused by name."""
+    car = SYSTEMS["car"]
+    q0 = jnp.array([0.0, 0.0, 0.3, 0.0, 0.1])
+    qdot0 = car.qdot_from_velocities(q0, jnp.array([2.0]), jnp.zeros(2))
+    a = lj.simulate(car, [float(x) for x in q0], [float(x) for x in qdot0], None, t_final=1.0, n_steps=10)
+    b = lj.simulate(car, q0, qdot0, None, t_final=1.0, n_steps=10)
+    np.testing.assert_array_equal(a.q, b.q)
+    np.testing.assert_array_equal(
+        lj.reference(car, q0, qdot0, None, [1.0]).q, lj.reference(car, q0, qdot0, None, jnp.array([1.0])).q
+    )
+    assert lj.Car(m=2).m.dtype == jnp.float64 and float(lj.Snakeboard(l=1).l) == 1.0
+    with pytest.raises(TypeError, match="physical parameter"):
+        lj.Car(m="heavy")
+    with pytest.raises(TypeError, match="'q0'"):
+        lj.simulate(car, "zeros", qdot0, None, t_final=1.0, n_steps=10)
 
 
 class TestBadInput:
     sb = SYSTEMS["snakeboard"]
-    ctl = lj.Sinusoids(amplitude=[[0.1], [0.0]], frequency=[[1.0], [1.0]], phase=[[0.0], [0.0]])
+    ctl = lj.Sinusoids(
+        amplitude=jnp.array([[0.1], [0.0]]),
+        frequency=jnp.array([[1.0], [1.0]]),
+        phase=jnp.array([[0.0], [0.0]]),
+    )
 
     def run(self, q0=None, qdot0=None, ctl=None, **kw):
         args = dict(t_final=1.0, n_steps=10)
@@ -251,15 +291,33 @@ class TestBadInput:
         with pytest.raises(ValueError, match="'qdot0'.*shape"):
             self.run(qdot0=jnp.zeros((2, 5)))
         with pytest.raises(ValueError, match="'controls'.*channels"):
-            self.run(ctl=lj.Sinusoids(amplitude=[[0.1]], frequency=[[1.0]], phase=[[0.0]]))
+            self.run(
+                ctl=lj.Sinusoids(
+                    amplitude=jnp.array([[0.1]]), frequency=jnp.array([[1.0]]), phase=jnp.array([[0.0]])
+                )
+            )
         with pytest.raises(ValueError, match="'amplitude'.*shape"):
-            lj.Sinusoids(amplitude=[0.1, 0.2], frequency=[1.0, 1.0], phase=[0.0, 0.0])
+            lj.Sinusoids(
+                amplitude=jnp.array([0.1, 0.2]), frequency=jnp.array([1.0, 1.0]), phase=jnp.array([0.0, 0.0])
+            )
         with pytest.raises(ValueError, match="shapes differ"):
-            lj.Sinusoids(amplitude=[[0.1, 0.2]], frequency=[[1.0]], phase=[[0.0]])
+            lj.Sinusoids(
+                amplitude=jnp.array([[0.1, 0.2]]), frequency=jnp.array([[1.0]]), phase=jnp.array([[0.0]])
+            )
+        with pytest.raises(TypeError, match="'controls'"):
+            self.run(ctl=lambda t: jnp.zeros(2))
+        with pytest.raises(TypeError, match="'integrator'"):
+            self.run(integrator="rdp")
 
     def test_dtype(self):
-        with pytest.raises(ValueError, match="'q0'.*floating"):
-            self.run(q0=jnp.zeros(5, dtype=jnp.int32))
+        # integers are converted to the default float; other dtypes are refused by name
+        np.testing.assert_array_equal(self.run(q0=jnp.zeros(5, dtype=jnp.int32)).q, self.run().q)
+        with pytest.raises(ValueError, match="'q0'.*float32 or float64"):
+            self.run(q0=jnp.zeros(5, dtype=jnp.float16))
+        with pytest.raises(ValueError, match="'qdot0'.*float32 or float64"):
+            self.run(qdot0=jnp.zeros(5, dtype=jnp.complex64))
+        with pytest.raises(TypeError, match="'q0'"):
+            self.run(q0="zeros")
 
     def test_settings(self):
         with pytest.raises(ValueError, match="'alpha'"):
@@ -268,6 +326,8 @@ class TestBadInput:
             lj.RDP(alpha=-0.1)
         with pytest.raises(ValueError, match="'retraction'"):
             lj.RDP(retraction="euler")
+        with pytest.raises(ValueError, match="'solver'"):
+            lj.RDP(solver="broyden")
         with pytest.raises(ValueError, match="'n_steps'"):
             self.run(n_steps=0)
         with pytest.raises(ValueError, match="'n_steps'"):
@@ -276,15 +336,29 @@ class TestBadInput:
             self.run(t_final=0.0)
         with pytest.raises(ValueError, match="'t_final'"):
             self.run(t_final=-1.0)
+        with pytest.raises(ValueError, match="'q0' must be finite"):
+            self.run(q0=jnp.full(5, jnp.nan))
+        with pytest.raises(ValueError, match="'divergence'"):
+            self.run(divergence=-1.0)
 
     def test_constraint_violating_qdot0(self):
+        bad = jnp.array([0.0, 1.0, 0.0, 0.0, 0.0])  # sideways sliding
         with pytest.raises(ValueError, match="'qdot0' violates the constraints"):
-            self.run(qdot0=jnp.array([0.0, 1.0, 0.0, 0.0, 0.0]))  # sideways sliding
+            self.run(qdot0=bad)
         car = SYSTEMS["car"]
         with pytest.raises(ValueError, match="'qdot0' violates"):
             lj.simulate(
                 car, jnp.zeros(5), jnp.array([1.0, 0.0, 0.0, 0.0, 0.0]), self.ctl, t_final=1.0, n_steps=5
             )
-        # inside jit the check is a runtime error that still names qdot0
+        # inside jit the values are traced: the run reports invalid_input (every node NaN), whose
+        # message names qdot0, and throw=True raises it
+        traj = jax.jit(lambda qd: self.run(qdot0=qd))(bad)
+        assert traj.result == lj.RESULTS.invalid_input and int(traj.failure_index) == 0
+        assert "qdot0" in lj.RESULTS[traj.result]
+        assert bool(jnp.all(jnp.isnan(traj.q)))
         with pytest.raises(Exception, match="qdot0"):
-            jax.jit(lambda qd: self.run(qdot0=qd).q)(jnp.array([0.0, 1.0, 0.0, 0.0, 0.0]))
+            jax.jit(lambda qd: self.run(qdot0=qd, throw=True).q)(bad)
+        # a vmapped batch fails only its bad member
+        ok = jax.vmap(lambda qd: self.run(qdot0=qd))(jnp.stack([jnp.zeros(5), bad]))
+        np.testing.assert_array_equal(code(ok.result), [0, lj.RESULTS.invalid_input._value])
+        assert bool(jnp.all(jnp.isfinite(ok.q[0])))

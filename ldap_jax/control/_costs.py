@@ -4,10 +4,11 @@ A term is a small module with a per-node part and a terminal part,
 
     J = sum_{k=0}^{N} term.stage(system, obs_k, c_k, h) + term.terminal(system, obs_N, q_0),
 
-where ``obs_k`` is the :class:`Node` ``k`` (its configuration ``q`` and velocity ``qdot``), ``c_k`` the physical control values at ``t_k`` and ``h`` the step. A task's cost
-is a tuple of terms (summed, each reported on its own), the way optax chains transformations;
-the same terms score a trajectory of the optimizer's model, the interior-point solver's stage
-costs and a replay on the high-accuracy reference.
+where ``obs_k`` is the :class:`Node` ``k`` (its configuration ``q`` and velocity ``qdot``), ``c_k``
+the physical control values at ``t_k`` and ``h`` the step. A task's cost is a tuple of terms
+(summed, each reported on its own), the way optax chains transformations; the same terms score a
+trajectory of the optimizer's model, the interior-point solver's stage costs and a replay on the
+high-accuracy reference.
 """
 
 from __future__ import annotations
@@ -43,7 +44,7 @@ def wrap_angle(theta: ArrayLike) -> Array:
     return jnp.arctan2(jnp.sin(theta), jnp.cos(theta))
 
 
-def pose_error(q: Float[ArrayLike, " d"], goal: Float[ArrayLike, "3"]) -> Float[Array, "3"]:
+def pose_error(q: Float[ArrayLike, " d"], goal: Float[ArrayLike, 3]) -> Float[Array, 3]:
     """Pose error ``log(g_goal^-1 g)`` in ``(omega, v_x, v_y)`` (App. B) for ``q = (x, y, theta, ...)``.
 
     Expressed in the goal's body frame: the first entry is the heading error in ``(-pi, pi]``
@@ -113,7 +114,7 @@ class Forward(AbstractTerm):
 class TerminalPose(AbstractTerm):
     """``w_heading e_1^2 + w_position (e_2^2 + e_3^2)`` with ``e = log(g_goal^-1 g_N)``."""
 
-    goal: Float[Array, "3"]
+    goal: Float[Array, 3]
     w_heading: Array = eqx.field(default=1.0, converter=jnp.asarray)
     w_position: Array = eqx.field(default=1.0, converter=jnp.asarray)
 

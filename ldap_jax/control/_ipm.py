@@ -189,7 +189,9 @@ def _kkt_parts(st: IPMState, d: _Derivatives, lo: Array, hi: Array):
     sl = jnp.where(jnp.isfinite(lo), st.chi - lo, 0.0)
     su = jnp.where(jnp.isfinite(hi), hi - st.chi, 0.0)
     n_mult = st.y.size + st.nu.size + st.zl.size
-    s_d = jnp.maximum(1.0, (jnp.sum(jnp.abs(st.y)) + jnp.sum(jnp.abs(st.nu)) + jnp.sum(st.zl + st.zu)) / (100.0 * n_mult))
+    s_d = jnp.maximum(
+        1.0, (jnp.sum(jnp.abs(st.y)) + jnp.sum(jnp.abs(st.nu)) + jnp.sum(st.zl + st.zu)) / (100.0 * n_mult)
+    )
     s_c = jnp.maximum(1.0, jnp.sum(st.zl + st.zu) / (100.0 * st.zl.size))
     return dual / s_d, primal, sl, su, s_c
 
@@ -229,8 +231,16 @@ def ipm_solve(fns: OCPFunctions, chi: Array, v: Array, lo: Array, hi: Array, opt
     # push the guess strictly inside the bounds (IPOPT's bound_push)
     push = options.bound_push
     width = jnp.where(has_lo & has_hi, hi - lo, jnp.inf)
-    chi = jnp.where(has_lo, jnp.maximum(chi, lo + jnp.minimum(push * jnp.maximum(1.0, jnp.abs(lo)), 0.5 * push * width)), chi)
-    chi = jnp.where(has_hi, jnp.minimum(chi, hi - jnp.minimum(push * jnp.maximum(1.0, jnp.abs(hi)), 0.5 * push * width)), chi)
+    chi = jnp.where(
+        has_lo,
+        jnp.maximum(chi, lo + jnp.minimum(push * jnp.maximum(1.0, jnp.abs(lo)), 0.5 * push * width)),
+        chi,
+    )
+    chi = jnp.where(
+        has_hi,
+        jnp.minimum(chi, hi - jnp.minimum(push * jnp.maximum(1.0, jnp.abs(hi)), 0.5 * push * width)),
+        chi,
+    )
     mu0 = jnp.asarray(options.mu0, dtype)
     zero = jnp.zeros((), dtype)
 
@@ -262,7 +272,9 @@ def ipm_solve(fns: OCPFunctions, chi: Array, v: Array, lo: Array, hi: Array, opt
 
     def barrier_objective(c, mu):
         sl, su = slacks(c)
-        return _objective(fns, c) - mu * (jnp.sum(jnp.where(has_lo, jnp.log(sl), 0.0)) + jnp.sum(jnp.where(has_hi, jnp.log(su), 0.0)))
+        return _objective(fns, c) - mu * (
+            jnp.sum(jnp.where(has_lo, jnp.log(sl), 0.0)) + jnp.sum(jnp.where(has_hi, jnp.log(su), 0.0))
+        )
 
     def theta_phi(c, vv, mu):
         defects, cK = _constraints(fns, c, vv)
@@ -273,13 +285,17 @@ def ipm_solve(fns: OCPFunctions, chi: Array, v: Array, lo: Array, hi: Array, opt
         def mu_cond(mu_):
             return (_kkt_error(parts, st, lo, hi, mu_) <= options.kappa_eps * mu_) & (mu_ > tol / 10)
 
-        mu = jax.lax.while_loop(mu_cond, lambda mu_: jnp.maximum(tol / 10, jnp.minimum(0.2 * mu_, mu_**1.5)), st.mu)
+        mu = jax.lax.while_loop(
+            mu_cond, lambda mu_: jnp.maximum(tol / 10, jnp.minimum(0.2 * mu_, mu_**1.5)), st.mu
+        )
         sl, su = slacks(st.chi)
         sigma = jnp.where(has_lo, st.zl / sl, 0.0) + jnp.where(has_hi, st.zu / su, 0.0)
         g = d.g + jnp.where(has_lo, -mu / sl, 0.0) + jnp.where(has_hi, mu / su, 0.0)
         diag = jax.vmap(jnp.diag)(jnp.concatenate([jnp.zeros((1, n), dtype), sigma[:-1]]))
         W0 = d.W.at[:, :n, :n].add(diag)
-        w = jnp.concatenate([jnp.concatenate([jnp.zeros((1, n), dtype), g[:-1]]), jnp.zeros((K, m), dtype)], axis=1)
+        w = jnp.concatenate(
+            [jnp.concatenate([jnp.zeros((1, n), dtype), g[:-1]]), jnp.zeros((K, m), dtype)], axis=1
+        )
         # rho_c C^T C: free in the QP (C dx_K = -c holds exactly) but it curves the terminal
         # directions, so that the stagewise positive-definiteness test is the inertia test
         QK0 = d.QK + jnp.diag(sigma[-1]) + options.rho_c * d.CK.T @ d.CK
@@ -295,7 +311,9 @@ def ipm_solve(fns: OCPFunctions, chi: Array, v: Array, lo: Array, hi: Array, opt
 
         def reg_body(c):
             delta, _, tries = c
-            delta = jnp.where(tries == 0, zero, jnp.where(delta == 0, jnp.maximum(1e-4, st.delta_w / 3), 8.0 * delta))
+            delta = jnp.where(
+                tries == 0, zero, jnp.where(delta == 0, jnp.maximum(1e-4, st.delta_w / 3), 8.0 * delta)
+            )
             return delta, factor_with(delta), tries + 1
 
         shapes = jax.eval_shape(factor_with, zero)
@@ -339,7 +357,9 @@ def ipm_solve(fns: OCPFunctions, chi: Array, v: Array, lo: Array, hi: Array, opt
             return alpha, k + 1, ok, f_type
 
         false = jnp.zeros((), bool)
-        alpha, _, ls_ok, f_type = jax.lax.while_loop(ls_cond, ls_body, (a_max, jnp.zeros((), jnp.int32), false, false))
+        alpha, _, ls_ok, f_type = jax.lax.while_loop(
+            ls_cond, ls_body, (a_max, jnp.zeros((), jnp.int32), false, false)
+        )
         alpha = jnp.where(ls_ok, alpha, 0.0)
         entry = jnp.stack([(1 - 1e-5) * theta0, phi0 - 1e-8 * theta0])
         filt = jnp.where(ls_ok & ~f_type, jnp.concatenate([entry[None], filt[:-1]]), filt)
@@ -370,13 +390,23 @@ def ipm_solve(fns: OCPFunctions, chi: Array, v: Array, lo: Array, hi: Array, opt
             SOLVER_RESULTS.where(
                 ~reg_ok,
                 SOLVER_RESULTS.regularization_failed,
-                SOLVER_RESULTS.where(~ls_ok, SOLVER_RESULTS.line_search_failed, SOLVER_RESULTS.max_iterations),
+                SOLVER_RESULTS.where(
+                    ~ls_ok, SOLVER_RESULTS.line_search_failed, SOLVER_RESULTS.max_iterations
+                ),
             ),
         )
         if options.verbose:
             jax.debug.print(
-                "it {i:3d} mu {mu:.1e} err {e:.2e} theta {t:.2e} delta {dl:.1e} alpha {a:.2e} amax {am:.2e} ls {ls}",
-                i=st.iteration, mu=mu, e=st.error, t=theta0, dl=delta, a=alpha, am=a_max, ls=ls_ok,
+                "it {i:3d} mu {mu:.1e} err {e:.2e} theta {t:.2e} delta {dl:.1e} "
+                "alpha {a:.2e} amax {am:.2e} ls {ls}",
+                i=st.iteration,
+                mu=mu,
+                e=st.error,
+                t=theta0,
+                dl=delta,
+                a=alpha,
+                am=a_max,
+                ls=ls_ok,
             )
         new = jax.tree_util.tree_map(lambda a, b: jnp.where(finite, a, b), new, st)
         return new._replace(result=result)
@@ -398,9 +428,13 @@ def ipm_solve(fns: OCPFunctions, chi: Array, v: Array, lo: Array, hi: Array, opt
             dgrad = jnp.einsum("jab,ja->jb", d.Z[1:] - Z_o[1:], st.y[1:])
             first = st.iteration > 0
             curv = jnp.where(first, jax.vmap(_sr1)(st.curvature, w_new - w_old, dgrad), st.curvature)
-            curv_K = jnp.where(first, _sr1(st.curvature_K, st.chi[-1] - chi_o[-1], (d.CK - C_o).T @ st.nu), st.curvature_K)
+            curv_K = jnp.where(
+                first, _sr1(st.curvature_K, st.chi[-1] - chi_o[-1], (d.CK - C_o).T @ st.nu), st.curvature_K
+            )
             st = st._replace(curvature=curv, curvature_K=curv_K, previous=(st.chi, st.v, d.Z, d.CK))
-            d = d._replace(W=d.W.at[1:].add(jnp.where(exact, curv, 0.0)), QK=d.QK + jnp.where(exact, curv_K, 0.0))
+            d = d._replace(
+                W=d.W.at[1:].add(jnp.where(exact, curv, 0.0)), QK=d.QK + jnp.where(exact, curv_K, 0.0)
+            )
         parts = _kkt_parts(st, d, lo, hi)
         e0 = _kkt_error(parts, st, lo, hi, zero)
         done = e0 <= tol

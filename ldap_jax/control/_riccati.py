@@ -129,8 +129,25 @@ def riccati_factor(W: Array, Z: Array, QK: Array, C: Array, delta_c: Array) -> F
         return Mx_next, (Mx_next, Mv)
 
     MK, (Mx, Mv) = jax.lax.scan(forward, jnp.zeros((n, p), dtype), (K, Knu, Z))
-    CM_inv = solve(C @ MK - delta_c * jnp.eye(p, dtype=dtype), jnp.eye(p, dtype=dtype)) if p else jnp.zeros((0, 0), dtype)
-    return Factor(Z=Z, K=K, Hinv=Hinv, Hxu=Hxu, P=P, Knu=Knu, Pnu=Pnu, Mx=Mx, Mv=Mv, C=C, CM_inv=CM_inv, positive=positive)
+    CM_inv = (
+        solve(C @ MK - delta_c * jnp.eye(p, dtype=dtype), jnp.eye(p, dtype=dtype))
+        if p
+        else jnp.zeros((0, 0), dtype)
+    )
+    return Factor(
+        Z=Z,
+        K=K,
+        Hinv=Hinv,
+        Hxu=Hxu,
+        P=P,
+        Knu=Knu,
+        Pnu=Pnu,
+        Mx=Mx,
+        Mv=Mv,
+        C=C,
+        CM_inv=CM_inv,
+        positive=positive,
+    )
 
 
 def riccati_apply(f: Factor, w: Array, e: Array, qK: Array, c: Array) -> QPSolution:

@@ -10,11 +10,12 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from .._discrete import DiscreteDynamics, discretize
-from .._validation import check_positive_int
+from .._numerics import plain
+from .._validation import check_array, check_positive_int, check_positive_number, is_concrete
 from ._costs import Node, TerminalRest, pose_error
 from ._ipm import SOLVER_RESULTS, IPMOptions, IPMState, OCPFunctions, _constraints, _derivatives, ipm_solve
-from ._riccati import riccati_apply, riccati_factor
 from ._parameterizations import SampledControls
+from ._riccati import riccati_apply, riccati_factor
 from ._tasks import Task
 
 __all__ = ["Solution", "solve", "problem_functions"]
@@ -108,7 +109,9 @@ def solve(
     primal-dual interior-point method with the exact Hessian of the Lagrangian and a Riccati
     solve of each Newton step (:mod:`ldap_jax.control._ipm`). Multiple shooting: the initial
     states come from a rollout of ``params0``. One compilation per problem structure; jit-,
-    vmap- and grad-able (see :func:`~ldap_jax.control.sensitivity` for derivatives of the optimum).
+    vmap- and grad-able: ``jax.grad``/``jax.jacfwd`` of the solution with respect to the task's
+    arrays (model parameters, goal) give the sensitivities of the optimum by the implicit function
+    theorem at the solution (not by differentiating the iterations).
 
     Args:
         task: a task with per-step sampled controls (:class:`SampledControls`).
@@ -120,8 +123,10 @@ def solve(
         :class:`Solution`.
 
     Raises:
-        TypeError, ValueError: a task without sampled controls, a bad guess shape, a non-positive
-            ``tol`` or ``max_iterations``.
+        TypeError: ``task`` is not a :class:`Task`; a non-numeric ``tol``, ``max_iterations`` or
+            ``params0``.
+        ValueError: a task without sampled controls, a bad guess shape or a non-finite guess, a
+            non-positive ``tol`` or ``max_iterations``.
     """
     if not isinstance(task, Task):
         raise TypeError(f"'task' must be an lc.Task (e.g. lc.parallel_park()), got {type(task)}")
@@ -130,16 +135,20 @@ def solve(
             "solve needs per-step sampled controls (lc.SampledControls); this task uses "
             f"{type(task.parameterization).__name__}: optimise it with lc.optimize"
         )
-    if isinstance(tol, bool) or not isinstance(tol, (int, float)) or not (tol > 0 and np.isfinite(tol)):
-        raise ValueError(f"'tol' must be a positive number, got {tol!r}")
+    tol = check_positive_number("tol", tol)
     max_iterations = check_positive_int("max_iterations", max_iterations)
     shape = (task.n_steps + 1, task.system.n_controls)
     if params0 is None:
         params0 = task.init()
-    params0 = jnp.asarray(params0)
-    if params0.shape != shape:
-        raise ValueError(f"'params0' must have shape {shape} (N + 1 nodes, channels), got {params0.shape}")
-    return _solve(task, params0, IPMOptions(tol=float(tol), max_iterations=max_iterations))
+    params0 = check_array("params0", params0, shape, "(N + 1 nodes, channels)")
+    with jax.ensure_compile_time_eval():
+        if is_concrete(params0) and not bool(np.all(np.isfinite(np.asarray(params0)))):
+            raise ValueError("'params0' must be finite (an initial guess with NaN or inf)")
+    # tolerance and budget as arrays: new values must not recompile
+    options = IPMOptions(
+        tol=jnp.asarray(tol, task.q0.dtype), max_iterations=jnp.asarray(max_iterations, jnp.int32)
+    )
+    return _solve(task, params0, options)
 
 
 def _setup(task: Task, v0: Array):
@@ -157,6 +166,12 @@ def _stopped(tree):
 
 @eqx.filter_jit
 def _solve(task: Task, params0: Array, options: IPMOptions) -> Solution:
+    # the kernels as plain arithmetic: this program differentiates them twice
+    with plain():
+        return _solve_traced(task, params0, options)
+
+
+def _solve_traced(task: Task, params0: Array, options: IPMOptions) -> Solution:
     dtype = task.q0.dtype
     params0 = params0.astype(dtype)
     fixed = _stopped(task)
@@ -227,8 +242,10 @@ def _optimum_jvp(primals, tangents):
             f = jnp.sum(jax.vmap(fns_.stage_cost)(chi_)) + fns_.terminal_cost(chi_[-1])
             sl = jnp.where(jnp.isfinite(lo_), chi_ - lo_, 1.0)
             su = jnp.where(jnp.isfinite(hi_), hi_ - chi_, 1.0)
-            barrier = -mu * (jnp.sum(jnp.where(jnp.isfinite(lo_), jnp.log(sl), 0.0))
-                             + jnp.sum(jnp.where(jnp.isfinite(hi_), jnp.log(su), 0.0)))
+            barrier = -mu * (
+                jnp.sum(jnp.where(jnp.isfinite(lo_), jnp.log(sl), 0.0))
+                + jnp.sum(jnp.where(jnp.isfinite(hi_), jnp.log(su), 0.0))
+            )
             return f + barrier + jnp.sum(st.y * defects) + st.nu @ fns_.terminal(chi_[-1]), defects
 
         (g_chi, g_v), defects = jax.grad(lagrangian, argnums=(0, 1), has_aux=True)(chi, v)
@@ -244,7 +261,9 @@ def _optimum_jvp(primals, tangents):
     # the matrices belong to the solution (no tangent flows through them); the map from the
     # right-hand side to the step is linear, so forward and reverse mode both go through it
     fac = jax.lax.stop_gradient(
-        riccati_factor(d.W.at[:, :n, :n].add(diag), d.Z, d.QK + jnp.diag(sigma[-1]), d.CK, jnp.zeros((), dtype))
+        riccati_factor(
+            d.W.at[:, :n, :n].add(diag), d.Z, d.QK + jnp.diag(sigma[-1]), d.CK, jnp.zeros((), dtype)
+        )
     )
     w = jnp.concatenate([jnp.concatenate([jnp.zeros((1, n), dtype), r_chi[:-1]]), r_v], axis=1)
     sol = riccati_apply(fac, w, e, r_chi[-1], c)

@@ -26,14 +26,34 @@ from jaxtyping import Array, PRNGKeyArray
 from .._reference import reference
 from .._rollout import check_checkpoint
 from .._simulate import Trajectory, simulate
-from .._validation import check_positive_int
+from .._validation import check_array, check_positive_int, check_scalar, is_concrete
 from ..integrators import RDP, AbstractIntegrator
 from ..systems import AbstractSystem, Car, Snakeboard
-from ._costs import AbstractTerm, BoundPenalty, Effort, Forward, Node, TerminalPose, TerminalRest, evaluate_terms
-from ._costs import pose_error, wrap_angle
+from ._costs import (
+    AbstractTerm,
+    BoundPenalty,
+    Effort,
+    Forward,
+    Node,
+    TerminalPose,
+    TerminalRest,
+    evaluate_terms,
+    pose_error,
+    wrap_angle,
+)
 from ._parameterizations import AbstractParameterization, SampledControls, SinusoidGait
 
-__all__ = ["Task", "Penalty", "parallel_park", "u_turn", "forward_gait", "reach", "TASKS", "replay", "gradient_memory"]
+__all__ = [
+    "Task",
+    "Penalty",
+    "parallel_park",
+    "u_turn",
+    "forward_gait",
+    "reach",
+    "TASKS",
+    "replay",
+    "gradient_memory",
+]
 
 _INF = float("inf")
 
@@ -116,20 +136,30 @@ class Task(eqx.Module):
         if self.rest:
             terms["rest"] = TerminalRest(self.rest, self.penalty.rest)
         terms["bounds"] = BoundPenalty(
-            self.q_lower, self.q_upper, self.c_lower, self.c_upper, self.parameterization.scale, self.penalty.bounds
+            self.q_lower,
+            self.q_upper,
+            self.c_lower,
+            self.c_upper,
+            self.parameterization.scale,
+            self.penalty.bounds,
         )
         return terms
 
     def objective_terms(self) -> dict[str, AbstractTerm]:
         names = [type(t).__name__.lower() for t in self.objective]
-        return {n if names.count(n) == 1 else f"{n}{i}": t for i, (n, t) in enumerate(zip(names, self.objective))}
+        return {
+            n if names.count(n) == 1 else f"{n}{i}": t for i, (n, t) in enumerate(zip(names, self.objective))
+        }
 
     def terms(self, traj: Trajectory, params) -> dict[str, Array]:
         """Every term on a trajectory (objective terms scaled by ``objective_weight``)."""
         ctl = self.controls(params)
         c = jax.vmap(ctl)(traj.t)
         obs = Node(traj.q, traj.qdot)
-        out = {k: self.objective_weight * v for k, v in evaluate_terms(self.objective_terms(), self.system, obs, c, self.h, self.q0).items()}
+        out = {
+            k: self.objective_weight * v
+            for k, v in evaluate_terms(self.objective_terms(), self.system, obs, c, self.h, self.q0).items()
+        }
         out.update(evaluate_terms(self.constraint_terms(), self.system, obs, c, self.h, self.q0))
         return out
 
@@ -156,11 +186,20 @@ class Task(eqx.Module):
         """A copy with another integrator, checkpoint policy, number of steps, goal or system."""
         task = self
         if integrator is not None:
+            if not isinstance(integrator, AbstractIntegrator):
+                raise TypeError(
+                    f"'integrator' must be an ldap_jax integrator (e.g. lj.RDP()), got {type(integrator)}"
+                )
             task = eqx.tree_at(lambda t: t.integrator, task, integrator)
         if system is not None:
+            if not isinstance(system, type(self.system)):
+                raise TypeError(
+                    f"'system' must be a {type(self.system).__name__} like the task's, got {type(system)}"
+                )
             task = eqx.tree_at(lambda t: t.system, task, system)
         if goal is not None:
-            task = eqx.tree_at(lambda t: t.goal, task, jnp.asarray(goal, float), is_leaf=lambda x: x is None)
+            goal = check_array("goal", goal, (3,), "(a pose x, y, theta)").astype(float)
+            task = eqx.tree_at(lambda t: t.goal, task, goal, is_leaf=lambda x: x is None)
         if checkpoint is not None:
             task = dataclasses.replace(task, checkpoint=check_checkpoint(checkpoint))
         if n_steps is not None:
@@ -194,54 +233,140 @@ def make_task(
     checkpoint=False,
     init_amplitude: float = 0.3,
 ) -> Task:
-    """Build a :class:`Task`, checking its pieces (the message names the argument)."""
+    """Build a :class:`Task`, checking its pieces.
+
+    Raises:
+        TypeError: a piece of the wrong type (``system``, ``parameterization``, ``integrator``,
+            ``objective``, ``penalty``, ``guess``, a non-numeric array); the message names it.
+        ValueError: a bad shape or value (non-finite or out-of-bounds ``q0``, ``qdot0`` off the
+            constraints, ``t_final <= 0``, empty bounds, a ``goal`` outside them, ``rest``
+            indices out of range, negative weights, controls with the wrong number of
+            channels); the message names the argument.
+    """
+    if not isinstance(name, str):
+        raise TypeError(f"'name' must be a string, got {name!r}")
+    if not isinstance(system, AbstractSystem):
+        raise TypeError(f"'system' must be an ldap_jax system (e.g. lj.Car()), got {type(system)}")
+    if not isinstance(parameterization, AbstractParameterization):
+        raise TypeError(
+            f"'parameterization' must be an lc parameterization (lc.SampledControls, lc.SinusoidGait), "
+            f"got {type(parameterization)}"
+        )
+    if integrator is not None and not isinstance(integrator, AbstractIntegrator):
+        raise TypeError(
+            f"'integrator' must be an ldap_jax integrator (e.g. lj.RDP()) or None, got {type(integrator)}"
+        )
+    objective = tuple(objective) if isinstance(objective, (tuple, list)) else objective
+    if not isinstance(objective, tuple) or not all(isinstance(t, AbstractTerm) for t in objective):
+        raise TypeError(
+            f"'objective' must be a tuple of cost terms (e.g. (lc.Effort(scale),)), got {objective!r}"
+        )
+    if not isinstance(penalty, Penalty):
+        raise TypeError(f"'penalty' must be an lc.Penalty, got {type(penalty)}")
+    if guess is not None and not isinstance(guess, SinusoidGait):
+        raise TypeError(f"'guess' must be an lc.SinusoidGait or None, got {type(guess)}")
     d, n = system.n_config, system.n_controls
     f = lambda x: jnp.asarray(x, float)  # noqa: E731
-    q0, qdot0 = f(q0), f(qdot0)
-    if q0.shape != (d,) or qdot0.shape != (d,):
-        raise ValueError(f"'q0' and 'qdot0' must have shape ({d},), got {q0.shape}, {qdot0.shape}")
-    viol = float(system.constraint_residual(q0, system.consistent_qdot(q0, qdot0, jnp.zeros(n))))
-    if not viol < 1e-10:
-        raise ValueError(f"'qdot0' violates the constraints of {type(system).__name__} ({viol:.2e})")
+    context = f"for {type(system).__name__}"
+    q0 = check_array("q0", q0, (d,), context).astype(float)
+    qdot0 = check_array("qdot0", qdot0, (d,), context).astype(float)
     n_steps = check_positive_int("n_steps", n_steps)
-    if not float(t_final) > 0:
-        raise ValueError(f"'t_final' must be positive, got {t_final}")
-    q_lower = f(np.full(d, -_INF) if q_lower is None else q_lower)
-    q_upper = f(np.full(d, _INF) if q_upper is None else q_upper)
-    c_max = f(np.full(n, _INF) if c_max is None else c_max)
-    if np.any(np.asarray(q_lower) >= np.asarray(q_upper)) or np.any(np.asarray(c_max) <= 0):
-        raise ValueError(f"the bounds are empty: q_lower={q_lower}, q_upper={q_upper}, c_max={c_max}")
-    if np.any(np.asarray(q0) < np.asarray(q_lower)) or np.any(np.asarray(q0) > np.asarray(q_upper)):
-        raise ValueError(f"'q0' {q0} lies outside the bounds [{q_lower}, {q_upper}]")
+    t_final = f(check_scalar("t_final", t_final))
+    scale = getattr(parameterization, "scale", None)
+    if scale is not None and jnp.shape(scale)[-1:] != (n,):
+        raise ValueError(
+            f"'parameterization' has {jnp.shape(scale)[-1] if jnp.ndim(scale) else 0} channels (its scale), "
+            f"{type(system).__name__} takes {n} {system.control_names}"
+        )
+    q_lower = check_array("q_lower", np.full(d, -_INF) if q_lower is None else q_lower, (d,), context).astype(
+        float
+    )
+    q_upper = check_array("q_upper", np.full(d, _INF) if q_upper is None else q_upper, (d,), context).astype(
+        float
+    )
+    c_max = check_array("c_max", np.full(n, _INF) if c_max is None else c_max, (n,), context).astype(float)
     if goal is not None:
-        goal = f(goal)
-        if goal.shape != (3,):
-            raise ValueError(f"'goal' must be a pose (x, y, theta), got shape {goal.shape}")
-        g_q = np.concatenate([np.asarray(goal), np.full(d - 3, np.nan)])
-        lo, hi = np.asarray(q_lower), np.asarray(q_upper)
-        outside = (g_q < lo) | (g_q > hi)
-        if np.any(outside[:3]):
-            raise ValueError(f"'goal' {np.asarray(goal)} lies outside the bounds of (x, y, theta): [{lo[:3]}, {hi[:3]}]")
+        goal = check_array("goal", goal, (3,), "(a pose x, y, theta)").astype(float)
+    if isinstance(rest, (int, np.integer)) or not all(
+        isinstance(i, (int, np.integer)) and not isinstance(i, bool) for i in tuple(rest)
+    ):
+        raise TypeError(f"'rest' must be a tuple of integer indices of the minimal velocities, got {rest!r}")
+    rest = tuple(int(i) for i in rest)
+    if any(not 0 <= i < system.n_velocities for i in rest):
+        raise ValueError(
+            f"'rest' indices must lie in [0, {system.n_velocities}) (the minimal velocities of "
+            f"{type(system).__name__}), got {rest}"
+        )
+    objective_weight = f(check_scalar("objective_weight", objective_weight))
+    checkpoint = check_checkpoint(checkpoint)
+    if isinstance(init_amplitude, bool) or not isinstance(init_amplitude, (int, float)):
+        raise TypeError(f"'init_amplitude' must be a number, got {init_amplitude!r}")
+    if not (np.isfinite(init_amplitude) and init_amplitude > 0):
+        raise ValueError(f"'init_amplitude' must be positive and finite, got {init_amplitude!r}")
+    # value checks, where the values are known (a task built inside jit skips them)
+    with jax.ensure_compile_time_eval():
+        if is_concrete((q0, qdot0)):
+            for name_, x in (("q0", q0), ("qdot0", qdot0)):
+                if not np.all(np.isfinite(np.asarray(x))):
+                    raise ValueError(f"'{name_}' must be finite, got {np.asarray(x)}")
+        if is_concrete(t_final) and not (np.isfinite(float(t_final)) and float(t_final) > 0):
+            raise ValueError(f"'t_final' must be positive and finite, got {float(t_final)}")
+        if isinstance(parameterization, SampledControls) and is_concrete(parameterization.t_final):
+            if parameterization.n_steps != n_steps:
+                raise ValueError(
+                    f"'parameterization' samples {parameterization.n_steps} steps but 'n_steps' is {n_steps}"
+                )
+            if is_concrete(t_final) and not np.isclose(float(parameterization.t_final), float(t_final)):
+                raise ValueError(
+                    f"'parameterization' spans t_final={float(parameterization.t_final)} but 't_final' is "
+                    f"{float(t_final)}"
+                )
+        if is_concrete((system, q0, qdot0)):
+            viol = float(system.constraint_residual(q0, system.consistent_qdot(q0, qdot0, jnp.zeros(n))))
+            if not viol < 1e-10:
+                raise ValueError(f"'qdot0' violates the constraints of {type(system).__name__} ({viol:.2e})")
+        lo, hi, cm = np.asarray(q_lower), np.asarray(q_upper), np.asarray(c_max)
+        if np.any(np.isnan(lo)) or np.any(np.isnan(hi)) or np.any(lo >= hi):
+            raise ValueError(f"'q_lower' must lie below 'q_upper' (no NaN), got q_lower={lo}, q_upper={hi}")
+        if np.any(~(cm > 0)):
+            raise ValueError(f"'c_max' must be positive (inf: no bound), got {cm}")
+        if is_concrete(q0) and (np.any(np.asarray(q0) < lo) or np.any(np.asarray(q0) > hi)):
+            raise ValueError(f"'q0' {np.asarray(q0)} lies outside the bounds [{lo}, {hi}]")
+        if goal is not None and is_concrete(goal):
+            g = np.asarray(goal)
+            if not np.all(np.isfinite(g)):
+                raise ValueError(f"'goal' must be finite, got {g}")
+            if np.any((g < lo[:3]) | (g > hi[:3])):
+                raise ValueError(f"'goal' {g} lies outside the bounds of (x, y, theta): [{lo[:3]}, {hi[:3]}]")
+        weights = np.asarray(tuple(penalty), float)
+        if not np.all(np.isfinite(weights) & (weights >= 0)):
+            raise ValueError(f"'penalty' weights must be non-negative and finite, got {penalty}")
+        if is_concrete(objective_weight) and not (
+            np.isfinite(float(objective_weight)) and float(objective_weight) >= 0
+        ):
+            raise ValueError(
+                f"'objective_weight' must be non-negative and finite, got {float(objective_weight)}"
+            )
     return Task(
         name=name,
         system=system,
         q0=q0,
         qdot0=qdot0,
-        t_final=f(t_final),
+        t_final=t_final,
         n_steps=n_steps,
         parameterization=parameterization,
         integrator=integrator if integrator is not None else RDP(),
-        objective=tuple(objective),
+        objective=objective,
         goal=goal,
-        rest=tuple(int(i) for i in rest),
+        rest=rest,
         q_lower=q_lower,
         q_upper=q_upper,
         c_lower=-c_max,
         c_upper=c_max,
         penalty=penalty,
-        objective_weight=f(objective_weight),
+        objective_weight=objective_weight,
         guess=guess,
-        checkpoint=check_checkpoint(checkpoint),
+        checkpoint=checkpoint,
         init_amplitude=init_amplitude,
     )
 
@@ -268,7 +393,7 @@ def parallel_park(
         np.zeros(5),
         t_final,
         n_steps,
-        SampledControls(t_final, n_steps, scale),
+        SampledControls(t_final, n_steps, np.asarray(scale, float)),
         integrator,
         objective=(Effort(jnp.asarray(scale)),),
         objective_weight=1e-5,
@@ -304,7 +429,7 @@ def u_turn(
         np.zeros(5),
         t_final,
         n_steps,
-        SampledControls(t_final, n_steps, scale),
+        SampledControls(t_final, n_steps, np.asarray(scale, float)),
         integrator,
         objective=(Effort(jnp.asarray(scale)),),
         objective_weight=1e-5,
@@ -342,7 +467,7 @@ def forward_gait(
         np.zeros(5),
         t_final,
         n_steps,
-        SinusoidGait(list(max_torque), n_terms=n_terms, frequency=frequency),
+        SinusoidGait(np.asarray(max_torque, float), n_terms=n_terms, frequency=frequency),
         integrator,
         objective=(Forward(),),
         penalty=Penalty(bounds=1e4),
@@ -377,7 +502,7 @@ def reach(
         np.zeros(5),
         t_final,
         n_steps,
-        SampledControls(t_final, n_steps, list(max_torque)),
+        SampledControls(t_final, n_steps, np.asarray(max_torque, float)),
         integrator,
         objective=(Effort(jnp.asarray(max_torque, float)),),
         objective_weight=1e-5,
@@ -387,7 +512,7 @@ def reach(
         q_lower=[-_INF, -_INF, -_INF, -_INF, -max_steer],
         q_upper=[_INF, _INF, _INF, _INF, max_steer],
         c_max=list(max_torque),
-        guess=SinusoidGait(list(max_torque), n_terms=1, frequency=frequency),
+        guess=SinusoidGait(np.asarray(max_torque, float), n_terms=1, frequency=frequency),
         init_amplitude=0.9,
         checkpoint=checkpoint,
     )
@@ -426,13 +551,27 @@ def replay(task: Task, params, *, rtol: float = 1e-11, atol: float = 1e-11) -> d
     c = np.asarray(jax.vmap(task.controls(params))(traj.t))
     lo, hi = np.asarray(task.q_lower), np.asarray(task.q_upper)
     viol_q = np.max(np.maximum(q_ref - hi, 0.0) + np.maximum(lo - q_ref, 0.0))
-    viol_c = np.max(np.maximum(c - np.asarray(task.c_upper), 0.0) + np.maximum(np.asarray(task.c_lower) - c, 0.0))
+    viol_c = np.max(
+        np.maximum(c - np.asarray(task.c_upper), 0.0) + np.maximum(np.asarray(task.c_lower) - c, 0.0)
+    )
     th0 = float(task.q0[2])
     forward = float((q_ref[-1, 0] - task.q0[0]) * np.cos(th0) + (q_ref[-1, 1] - task.q0[1]) * np.sin(th0))
-    terms_ref = task.terms(Trajectory(
-        t=traj.t, q=ref.q, qdot=ref.qdot, energy=None, work=None, momentum=None, constraint_residual=None,
-        step_residual=None, converged=traj.converged, result=traj.result, failure_index=traj.failure_index,
-    ), params)
+    terms_ref = task.terms(
+        Trajectory(
+            t=traj.t,
+            q=ref.q,
+            qdot=ref.qdot,
+            energy=None,
+            work=None,
+            momentum=None,
+            constraint_residual=None,
+            step_residual=None,
+            converged=traj.converged,
+            result=traj.result,
+            failure_index=traj.failure_index,
+        ),
+        params,
+    )
     return {
         "q_ref": q_ref,
         "q_model": q_mod,

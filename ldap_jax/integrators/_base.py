@@ -14,7 +14,14 @@ from jaxtyping import Array, Bool, Float, Int
 from .._results import RESULTS
 from ..systems import AbstractSystem, Observation
 
-__all__ = ["AbstractIntegrator", "AbstractAlphaIntegrator", "StepInfo", "classify", "concrete_float", "finite"]
+__all__ = [
+    "AbstractIntegrator",
+    "AbstractAlphaIntegrator",
+    "StepInfo",
+    "classify",
+    "concrete_float",
+    "finite",
+]
 
 
 def concrete_float(x: Any) -> float | None:
@@ -54,7 +61,9 @@ def classify(is_finite: Bool[Array, ""], singular: Bool[Array, ""], converged: B
     return RESULTS.where(
         ~is_finite,
         RESULTS.nonfinite,
-        RESULTS.where(singular, RESULTS.singular, RESULTS.where(converged, RESULTS.successful, RESULTS.not_converged)),
+        RESULTS.where(
+            singular, RESULTS.singular, RESULTS.where(converged, RESULTS.successful, RESULTS.not_converged)
+        ),
     )
 
 
@@ -126,5 +135,3 @@ class AbstractAlphaIntegrator(AbstractIntegrator):
     def order(self) -> int:
         a = concrete_float(self.alpha)
         return 2 if a is None or a == 0.5 else 1
-
-

@@ -31,7 +31,10 @@ SCHEMES: dict[str, tuple[int, tuple[float, ...]]] = {
     # Yoshida's triple jump: 3 stages, but its substeps leave [t_k, t_{k+1}] (weights > 1)
     "triple_jump": (4, (_YOSHIDA_W, 1.0 - 2.0 * _YOSHIDA_W, _YOSHIDA_W)),
     # McLachlan's 5-stage order-4 scheme with a small error constant (Hairer, Lubich, Wanner V.3)
-    "mclachlan5": (4, _palindrome([0.28, 0.62546642846767004501, 1.0 - 2.0 * (0.28 + 0.62546642846767004501)])),
+    "mclachlan5": (
+        4,
+        _palindrome([0.28, 0.62546642846767004501, 1.0 - 2.0 * (0.28 + 0.62546642846767004501)]),
+    ),
     # Kahan and Li's 9-stage order-6 scheme (s9odr6a): every node inside the step (default, order 6)
     "kahan_li9": (
         6,

@@ -1,6 +1,6 @@
 """The discrete Lagrange-d'Alembert (DLA) integrator of Cortes and Martinez (2001), with forces.
 
-Full-coordinate, implicit (DESIGN.md section 8, INTEGRATORS-NOTES.md section 3). Also holds the
+Full-coordinate, implicit (``docs/integrators.md``, section 4). Also holds the
 full-view helpers shared with :mod:`._gni`: the constraint rows including the prescribed
 velocities of kinematic shape coordinates, and the kinetic-metric projection onto them.
 """
@@ -67,7 +67,9 @@ def legendre_inverse(system, q: Array, p: Array, u_kin: Array) -> Array:
 
     def residual(z):
         v, lam = z[:d], z[d:]
-        return jnp.concatenate([jax.grad(system.lagrangian, argnums=1)(q, v) - rows.T @ lam - p, rows @ v - rhs])
+        return jnp.concatenate(
+            [jax.grad(system.lagrangian, argnums=1)(q, v) - rows.T @ lam - p, rows @ v - rhs]
+        )
 
     z0 = jnp.zeros(d + m, q.dtype)
     return (z0 - solve(jax.jacfwd(residual)(z0), residual(z0)))[:d]
@@ -122,7 +124,7 @@ class DLA(AbstractAlphaIntegrator):
 
     Properties: implicit; order 2 at ``a = 1/2`` (symmetric, the default), 1 otherwise; the
     discrete constraint holds to the solver tolerance at every step. At large steps Newton can
-    fail (the physical root merges with a spurious one: a fold; INTEGRATORS-NOTES.md 3.4).
+    fail (the physical root merges with a spurious one: a fold; ``docs/integrators.md`` section 4).
 
     Args:
         alpha: quadrature point in [0, 1].

@@ -1,5 +1,5 @@
 """The geometric nonholonomic integrator (GNI) of Ferraro, Iglesias and Martin de Diego (2008),
-with forces. Full-coordinate, explicit (DESIGN.md section 8, INTEGRATORS-NOTES.md section 4)."""
+with forces. Full-coordinate, explicit (``docs/integrators.md``, section 5)."""
 
 from __future__ import annotations
 
@@ -62,7 +62,7 @@ class GNI(AbstractAlphaIntegrator):
     raises (``eqx.error_if``) otherwise, e.g. for a Chaplygin sleigh with an offset contact
     point, whose consistent GNI would be implicit — use :class:`DLA` or :class:`RDP` there.
 
-    **Warning** (INTEGRATORS-NOTES.md 4.3, measured again here): the normal velocity
+    **Warning** (``docs/integrators.md`` section 5, measured again here): the normal velocity
     ``n_k = omega(q_k) v_k`` obeys exactly ``n_{k+1} = -n_k - (omega(q_{k+1}) - omega(q_k)) v_k``,
     a period-2 (parasitic) mode of this two-step method whose amplitude evolves on a time scale
     set by speed x curvature of ``D``, independent of ``h``. On long forced runs it grows until

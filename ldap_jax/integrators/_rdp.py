@@ -11,8 +11,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from .._results import RESULTS
 from .._newton import newton
+from .._results import RESULTS
 from ..lie import compose, dtau_inv, retract
 from ..systems import AbstractClosedFormSystem, AbstractSystem, Observation
 from ..systems._base import body_velocity, spatial_velocity
@@ -248,7 +248,9 @@ class RDP(AbstractAlphaIntegrator):
         """One RDP step of size ``h`` with control values ``c0`` at its start, ``c1`` at its end."""
         if self.uses_kernel(system):
             dtype = jnp.result_type(h)
-            new, residual, singular = system.kernel_step(self._alpha(dtype), h, self.retraction, state, c0, c1)
+            new, residual, singular = system.kernel_step(
+                self._alpha(dtype), h, self.retraction, state, c0, c1
+            )
             # an explicit step has nothing to converge; its residual is a diagnostic only
             result = classify(finite(new), singular, jnp.ones((), bool))
             return new, StepInfo(result=result, residual=residual, iterations=jnp.zeros((), jnp.int32))

@@ -65,8 +65,22 @@ def make_integrator(name: str) -> AbstractIntegrator:
 
 
 def _positive_int(name: str, value) -> None:
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise TypeError(f"'{name}' must be a positive integer, got {value!r}")
+    if value < 1:
         raise ValueError(f"'{name}' must be a positive integer, got {value!r}")
+
+
+def _positive_float(name: str, value) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise TypeError(f"'{name}' must be a positive number, got {value!r}")
+    if not (value > 0 and math.isfinite(value)):
+        raise ValueError(f"'{name}' must be positive and finite, got {value!r}")
+
+
+def _names(name: str, value) -> None:
+    if isinstance(value, (str, bytes)) or not isinstance(value, (tuple, list)):
+        raise TypeError(f"'{name}' must be a tuple of names, got {value!r}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -110,6 +124,10 @@ class StudyConfig:
     zero_steer_rate: bool = True
 
     def __post_init__(self):
+        for field in ("models", "methods", "durations", "resolutions"):
+            _names(field, getattr(self, field))
+        if not self.models or not self.methods:
+            raise ValueError(f"'models' and 'methods' must not be empty, got {self.models}, {self.methods}")
         for name in self.models:
             if name not in MODELS:
                 raise ValueError(f"'models' must be among {sorted(MODELS)}, got {name!r}")
@@ -120,14 +138,16 @@ class StudyConfig:
             raise ValueError("'resolutions' must not be empty")
         for n in self.resolutions:
             _positive_int("resolutions", n)
-        if not self.durations or any(not (float(t) > 0 and math.isfinite(float(t))) for t in self.durations):
-            raise ValueError(f"'durations' must be positive and finite, got {self.durations}")
+        if not self.durations:
+            raise ValueError("'durations' must not be empty")
+        for t in self.durations:
+            _positive_float("durations", t)
         for name in ("runs", "timing_runs", "repeats", "reference_check"):
             _positive_int(name, getattr(self, name))
-        if not self.reference_step > 0:
-            raise ValueError(f"'reference_step' must be positive, got {self.reference_step}")
-        if not self.blowup_factor > 0:
-            raise ValueError(f"'blowup_factor' must be positive, got {self.blowup_factor}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int):
+            raise TypeError(f"'seed' must be an integer, got {self.seed!r}")
+        _positive_float("reference_step", self.reference_step)
+        _positive_float("blowup_factor", self.blowup_factor)
         if self.n_out is not None:
             _positive_int("n_out", self.n_out)
         bad = [n for n in self.resolutions if n % self.output_nodes]

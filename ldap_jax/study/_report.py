@@ -7,6 +7,8 @@ import os
 
 import numpy as np
 
+from ._config import CSV_COLUMNS
+
 __all__ = ["write_csv", "read_csv", "plot_study", "format_table"]
 
 
@@ -61,7 +63,9 @@ STYLES = {
 }
 
 
-def plot_study(rows: list[dict], out_dir: str | os.PathLike, *, error: str = "final_error_median") -> list[str]:
+def plot_study(
+    rows: list[dict], out_dir: str | os.PathLike, *, error: str = "final_error_median"
+) -> list[str]:
     """Figures in the style of the paper's Figs. 4 and 5, one per model and duration, three panels
     against the resolution N: the position error (``error``, default the median final error, as
     in the tables; failed runs excluded), the runtime per trajectory, and the failure rate.
@@ -75,7 +79,9 @@ def plot_study(rows: list[dict], out_dir: str | os.PathLike, *, error: str = "fi
     paths = []
     for model, dur in sorted({(r["model"], r["duration"]) for r in rows}):
         sel = [r for r in rows if r["model"] == model and r["duration"] == dur]
-        fig, (ax_e, ax_t, ax_f) = plt.subplots(1, 3, figsize=(15, 4.6), gridspec_kw={"width_ratios": [1.25, 1, 0.8]})
+        fig, (ax_e, ax_t, ax_f) = plt.subplots(
+            1, 3, figsize=(15, 4.6), gridspec_kw={"width_ratios": [1.25, 1, 0.8]}
+        )
         for method in dict.fromkeys(r["method"] for r in sel):
             pts = sorted((r for r in sel if r["method"] == method), key=lambda r: r["n_steps"])
             ns = np.array([r["n_steps"] for r in pts])

@@ -36,16 +36,27 @@ def physical_parameter(x: Any) -> Array:
     """Converter for physical parameters: a floating array (the default float dtype for ints).
 
     Raises:
-        TypeError: for anything that is not a number or an array of numbers (e.g. a string).
+        TypeError: for anything that is not a real number or an array of real numbers (e.g. a
+            string, ``None``, a complex number); the message names the parameter.
     """
-    if isinstance(x, (str, bytes)) or (isinstance(x, np.ndarray) and x.dtype.kind in "USO"):
-        raise TypeError(f"a physical parameter must be a number or an array of numbers, got {x!r}")
+    from .._validation import converter_field
+
+    value = x
+
+    def bad(what: str) -> TypeError:
+        cls, name = converter_field()
+        where = f"{cls}: " if cls else ""
+        which = f"physical parameter '{name}'" if name else "a physical parameter"
+        return TypeError(f"{where}{which} must be {what}, got {value!r}")
+
+    if isinstance(x, (str, bytes)) or x is None or (isinstance(x, np.ndarray) and x.dtype.kind in "USO"):
+        raise bad("a real number or an array of real numbers")
     try:
         x = jnp.asarray(x)
-    except TypeError as err:
-        raise TypeError(f"a physical parameter must be a number or an array of numbers, got {x!r}") from err
+    except (TypeError, ValueError) as err:
+        raise bad("a real number or an array of real numbers") from err
     if not (jnp.issubdtype(x.dtype, jnp.floating) or jnp.issubdtype(x.dtype, jnp.integer)):
-        raise TypeError(f"a physical parameter must be real, got dtype {x.dtype}")
+        raise bad(f"real (dtype {x.dtype})")
     if not jnp.issubdtype(x.dtype, jnp.floating):
         x = x.astype(jnp.result_type(float))
     return x
@@ -59,18 +70,21 @@ def concrete(x) -> bool:
 def positive_checks(obj, *names: str) -> tuple[tuple[str, Array], ...]:
     """``(message, condition)`` pairs: each named parameter positive and finite."""
     return tuple(
-        (f"parameter {name!r} must be positive and finite", jnp.isfinite(getattr(obj, name)) & (getattr(obj, name) > 0))
+        (
+            f"parameter {name!r} must be positive and finite",
+            jnp.isfinite(getattr(obj, name)) & (getattr(obj, name) > 0),
+        )
         for name in names
     )
 
 
-def body_velocity(q: Float[Array, " d"], qdot: Float[Array, " d"]) -> Float[Array, "3"]:
+def body_velocity(q: Float[Array, " d"], qdot: Float[Array, " d"]) -> Float[Array, 3]:
     """``xi = g^-1 gdot = (thetadot, c xdot + s ydot, -s xdot + c ydot)`` for ``q = (x, y, theta, r)``."""
     c, s = jnp.cos(q[2]), jnp.sin(q[2])
     return jnp.stack([qdot[2], c * qdot[0] + s * qdot[1], -s * qdot[0] + c * qdot[1]])
 
 
-def spatial_velocity(q: Float[Array, " d"], xi: Float[Array, "3"]) -> Float[Array, "3"]:
+def spatial_velocity(q: Float[Array, " d"], xi: Float[Array, 3]) -> Float[Array, 3]:
     """``(xdot, ydot, thetadot)`` from the body velocity ``xi = (omega, v_x, v_y)``."""
     c, s = jnp.cos(q[2]), jnp.sin(q[2])
     return jnp.stack([c * xi[1] - s * xi[2], s * xi[1] + c * xi[2], xi[0]])
@@ -127,7 +141,11 @@ class AbstractSystem(eqx.Module):
             checks = self.parameter_checks()
         for message, ok in checks:
             if concrete(ok) and not bool(np.all(np.asarray(ok))):
-                values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if eqx.is_array(getattr(self, f.name))}
+                values = {
+                    f.name: getattr(self, f.name)
+                    for f in dataclasses.fields(self)
+                    if eqx.is_array(getattr(self, f.name))
+                }
                 raise ValueError(f"{type(self).__name__}: {message}, got {values}")
 
     @property
@@ -181,7 +199,10 @@ class AbstractSystem(eqx.Module):
         return self.reduced_lagrangian(q[3:], qdot[3:], body_velocity(q, qdot))
 
     def constraint_forms(self, q: Array) -> Float[Array, "m d"]:
-        """Constraint one-forms ``omega(q) = C(r) diag(B(theta), I)``, with ``xi = B(theta)(xdot, ydot, thetadot)``."""
+        """Constraint one-forms ``omega(q) = C(r) diag(B(theta), I)``.
+
+        Here ``xi = B(theta)(xdot, ydot, thetadot)``.
+        """
         c, s = jnp.cos(q[2]), jnp.sin(q[2])
         z, o = jnp.zeros_like(c), jnp.ones_like(c)
         b = jnp.array([[z, z, o], [c, s, z], [-s, c, z]])
@@ -228,7 +249,7 @@ class AbstractSystem(eqx.Module):
 
     def velocity_from_momenta(
         self, r: Array, pu: Array, mu: Array, u_kin: Array
-    ) -> tuple[Float[Array, " n"], Float[Array, "3"]]:
+    ) -> tuple[Float[Array, " n"], Float[Array, 3]]:
         """Invert the reduced Legendre transform on the constraint distribution.
 
         Finds ``(u, xi)``, ``xi = e(r) w - A(r) u`` and ``u`` equal to ``u_kin`` in its kinematic

@@ -1,4 +1,4 @@
-"""The steered car with simple dynamics (paper Sec. 5.1; DESIGN.md section 5)."""
+"""The steered car with simple dynamics (paper Sec. 5.1; ``docs/mathematics.md`` section 5)."""
 
 from __future__ import annotations
 
@@ -78,7 +78,10 @@ class Car(AbstractClosedFormSystem):
 
     # full view
     def body_constraints(self, r):
-        """``C(sigma) [xi; rdot] = 0``: ``v_x = rho psidot``, ``v_y = 0``, ``omega = (rho / l) sigma psidot``."""
+        """``C(sigma) [xi; rdot] = 0``.
+
+        That is ``v_x = rho psidot``, ``v_y = 0``, ``omega = (rho / l) sigma psidot``.
+        """
         z = jnp.zeros_like(r[1])
         o = jnp.ones_like(z)
         return jnp.array(
@@ -136,7 +139,6 @@ class Car(AbstractClosedFormSystem):
         qdot0 = self.qdot_from_velocities(q0, psidot0[None], ctl(zero) * jnp.array([0.0, 1.0], dtype))
         return q0, qdot0, ctl
 
-
     # ------------------------------------------------------ closed-form RDP (paper Sec. 5.1)
     def _solve(self, b_psi, mu, sigma_k, sigma_a):
         """The horizontal equation (23) for the wheel's rate (the car has no momentum equation)::
@@ -151,7 +153,11 @@ class Car(AbstractClosedFormSystem):
 
     def kernel_init(self, q, pu, mu):
         return CarKernelState(
-            pose_from_xy_theta(q[0], q[1], q[2]), q[3], q[4], (pu[0], jnp.zeros_like(pu[0])), (mu[0], mu[1], mu[2])
+            pose_from_xy_theta(q[0], q[1], q[2]),
+            q[3],
+            q[4],
+            (pu[0], jnp.zeros_like(pu[0])),
+            (mu[0], mu[1], mu[2]),
         )
 
     def kernel_momenta(self, state):

@@ -38,7 +38,21 @@ from ._base import AbstractSystem, body_velocity, spatial_velocity
 __all__ = ["System"]
 
 
+def _shape_of(fn_name: str, fn: Callable, *args):
+    """``jax.eval_shape(fn, *args)``; an error inside the user's function is re-raised with the
+    same type, naming the function (e.g. a wrong number of arguments, a shape mismatch)."""
+    try:
+        return jax.eval_shape(fn, *args)
+    except Exception as err:  # the user's code: any error, re-raised naming the function
+        kind = next((k for k in (TypeError, IndexError) if isinstance(err, k)), ValueError)
+        raise kind(f"System: calling {fn_name} (with the shapes of its arguments) failed: {err}") from err
+
+
 def _check_shape(name: str, fn_name: str, shape_struct, expected: tuple) -> None:
+    if not hasattr(shape_struct, "shape"):
+        raise ValueError(
+            f"System: {fn_name} must return an array of shape {expected} ({name}), got {shape_struct!r}"
+        )
     got = tuple(shape_struct.shape)
     if got != expected:
         raise ValueError(f"System: {fn_name} must return an array of shape {expected} ({name}), got {got}")
@@ -113,18 +127,36 @@ class System(AbstractSystem):
         shape_names: tuple[str, ...] | None = None,
         singularity: Callable | None = None,
     ):
-        if not isinstance(n_shape, (int, np.integer)) or n_shape < 0:
+        if isinstance(n_shape, bool) or not isinstance(n_shape, (int, np.integer)):
+            raise TypeError(f"System: 'n_shape' must be a non-negative integer, got {n_shape!r}")
+        if n_shape < 0:
             raise ValueError(f"System: 'n_shape' must be a non-negative integer, got {n_shape!r}")
         self.n = int(n_shape)
-        for name, fn in (("lagrangian", lagrangian), ("connection", connection)):
-            if not callable(fn):
-                raise ValueError(f"System: '{name}' must be a function, got {type(fn)}")
+        for name, fn, required in (
+            ("lagrangian", lagrangian, True),
+            ("connection", connection, True),
+            ("symmetry_basis", symmetry_basis, False),
+            ("constraints", constraints, False),
+            ("singularity", singularity, False),
+        ):
+            if not callable(fn) and (required or fn is not None):
+                raise TypeError(
+                    f"System: '{name}' must be a function{'' if required else ' or None'}, got {type(fn)}"
+                )
         self.lagrangian_fn = lagrangian
         self.connection_fn = connection
         self.symmetry_basis_fn = symmetry_basis
         self.constraints_fn = constraints
         self.singularity_fn = singularity
         self.params = jax.tree_util.tree_map(jnp.asarray, params)
+        if kinematic is not None and (
+            isinstance(kinematic, (str, bytes)) or not hasattr(kinematic, "__len__")
+        ):
+            raise TypeError(f"System: 'kinematic' must be a tuple of booleans, got {kinematic!r}")
+        if shape_names is not None and (
+            isinstance(shape_names, (str, bytes)) or not hasattr(shape_names, "__len__")
+        ):
+            raise TypeError(f"System: 'shape_names' must be a tuple of strings, got {shape_names!r}")
         kinematic = tuple(bool(k) for k in (kinematic or (False,) * self.n))
         if len(kinematic) != self.n:
             raise ValueError(
@@ -144,22 +176,27 @@ class System(AbstractSystem):
         dtype = jnp.result_type(float)
         r = jax.ShapeDtypeStruct((self.n,), dtype)
         xi = jax.ShapeDtypeStruct((3,), dtype)
-        _check_shape("a scalar", "lagrangian(r, u, xi)", jax.eval_shape(call(lagrangian), r, r, xi), ())
-        _check_shape("3 x n", "connection(r)", jax.eval_shape(call(connection), r), (3, self.n))
+        _check_shape(
+            "a scalar",
+            "lagrangian(r, u, xi)",
+            _shape_of("lagrangian(r, u, xi)", call(lagrangian), r, r, xi),
+            (),
+        )
+        _check_shape("3 x n", "connection(r)", _shape_of("connection(r)", call(connection), r), (3, self.n))
         if symmetry_basis is None:
             self.n_symmetries = 0
         else:
-            e = jax.eval_shape(call(symmetry_basis), r)
+            e = _shape_of("symmetry_basis(r)", call(symmetry_basis), r)
             if len(e.shape) != 2 or e.shape[0] != 3 or e.shape[1] > 3:
                 raise ValueError(
                     f"System: symmetry_basis(r) must return an array of shape (3, c), got {tuple(e.shape)}"
                 )
             self.n_symmetries = int(e.shape[1])
         if constraints is not None:
-            c = jax.eval_shape(call(constraints), r)
+            c = _shape_of("constraints(r)", call(constraints), r)
             _check_shape("(3 - c) x (3 + n)", "constraints(r)", c, (3 - self.n_symmetries, 3 + self.n))
         if singularity is not None:
-            _check_shape("a scalar", "singularity(r)", jax.eval_shape(call(singularity), r), ())
+            _check_shape("a scalar", "singularity(r)", _shape_of("singularity(r)", call(singularity), r), ())
 
     def _call(self, fn, *args):
         return fn(*args) if self.params is None else fn(self.params, *args)

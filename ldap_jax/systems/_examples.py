@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -11,11 +12,23 @@ __all__ = ["chaplygin_sleigh", "roller_racer"]
 
 
 def _positive(**kwargs) -> dict:
+    """The parameters as float arrays, each a real, positive and finite number (the message names
+    a bad one: ``TypeError`` for a non-number, ``ValueError`` for a value out of range)."""
     out = {}
     for name, value in kwargs.items():
-        arr = np.asarray(value)
-        if not np.all(arr > 0):
-            raise ValueError(f"parameter {name!r} must be positive, got {value}")
+        if isinstance(value, (bool, str, bytes)) or value is None:
+            raise TypeError(f"parameter {name!r} must be a positive number, got {value!r}")
+        if isinstance(value, jax.core.Tracer):  # a traced parameter (vmap, grad): not checked here
+            out[name] = jnp.asarray(value, dtype=jnp.result_type(float))
+            continue
+        try:
+            arr = np.asarray(value)
+        except (TypeError, ValueError) as err:  # pragma: no cover - ragged input
+            raise TypeError(f"parameter {name!r} must be a positive number, got {value!r}") from err
+        if arr.dtype.kind not in "iuf":
+            raise TypeError(f"parameter {name!r} must be a positive number, got {value!r}")
+        if not np.all(np.isfinite(arr) & (arr > 0)):
+            raise ValueError(f"parameter {name!r} must be positive and finite, got {value}")
         out[name] = jnp.asarray(value, dtype=jnp.result_type(float))
     return out
 
@@ -84,7 +97,9 @@ def roller_racer(
         d1, d2: front axle to hinge, hinge to rear axle (``d1 != d2``). k: hinge stiffness.
     """
     p = _positive(m1=m1, I1=I1, m2=m2, I2=I2, d1=d1, d2=d2, k=k)
-    if np.isclose(float(d1), float(d2)):
+    if all(not isinstance(x, jax.core.Tracer) for x in (d1, d2)) and np.any(
+        np.isclose(np.asarray(d1), np.asarray(d2))
+    ):
         raise ValueError(
             f"parameters 'd1' and 'd2' must differ (the lift is singular at phi = 0), got {d1}, {d2}"
         )

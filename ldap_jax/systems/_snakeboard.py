@@ -1,4 +1,4 @@
-"""The snakeboard (paper Sec. 5.2, corrected; DESIGN.md section 6)."""
+"""The snakeboard (paper Sec. 5.2, corrected; ``docs/mathematics.md`` section 6)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from jaxtyping import Array
 from .._numerics import materialise, saved, sincos
 from ..lie._scalar import Pose, body_to_qdot, dtau1_transpose, pose_from_xy_theta, pose_retract
 from ._base import physical_parameter, positive_checks
-from ._closed_form import AbstractClosedFormSystem, Observation
+from ._closed_form import AbstractClosedFormSystem
 
 __all__ = ["Snakeboard", "SnakeboardKernelState"]
 
@@ -76,7 +76,10 @@ class Snakeboard(AbstractClosedFormSystem):
 
     def parameter_checks(self):
         return positive_checks(self, "m", "l", "I", "J") + (
-            ("parameter 'I' must satisfy I < m l^2 (the rotor's inertia below the board's)", self.I < self.m * self.l**2),
+            (
+                "parameter 'I' must satisfy I < m l^2 (the rotor's inertia below the board's)",
+                self.I < self.m * self.l**2,
+            ),
         )
 
     # reduced view
@@ -151,7 +154,7 @@ class Snakeboard(AbstractClosedFormSystem):
 
         Rotor torque: ``n_terms`` sinusoids with amplitudes ``I U(0.5, 3)``, frequencies
         ``U(0.5, 3)`` rad/s. Steering: ``phi(t) = phi_c + b sin(w t + p)`` produced by the torque
-        ``f_phi = -2 J b w^2 sin(w t + p)`` with ``phi(0), phidot(0)`` matched to it (DESIGN.md
+        ``f_phi = -2 J b w^2 sin(w t + p)`` with ``phi(0), phidot(0)`` matched to it (``docs/mathematics.md``
         section 6: an unmatched phase drives phi into the singularity), ``|phi_c| + b <= max_steer``.
         Deterministic in ``key``; vmap over keys for a batch.
 
@@ -182,7 +185,6 @@ class Snakeboard(AbstractClosedFormSystem):
         v0 = jnp.stack([u(ks[9], (), -1.0, 1.0), b * w * jnp.cos(p), u(ks[10], (), -0.6, 0.6)])
         qdot0 = self.qdot_from_velocities(q0, v0, jnp.zeros(2, dtype))
         return q0, qdot0, ctl
-
 
     # --------------------------------------------- closed-form RDP (paper Sec. 5.2, corrected)
     def _solve(self, b_psi, nu, s_k, c_k, s_a, c_a):
@@ -235,6 +237,14 @@ class Snakeboard(AbstractClosedFormSystem):
         elif isinstance(a, float) and a == 1.0:  # phi_a = phi_{k+1}
             sn, cn = sincos(phi_next)
             sa, ca = sn, cn
+        elif isinstance(a, float) and a == 0.5:
+            # phi_a and phi_{k+1} are phi_k turned by d and 2 d, d = h u^phi / 2: one sincos, two
+            # rotations of the carried (cos, sin), renormalised to first order at every step
+            sd, cd = sincos(0.5 * h * u_phi)
+            sa, ca = sk * cd + ck * sd, ck * cd - sk * sd
+            sn, cn = sa * cd + ca * sd, ca * cd - sa * sd
+            unit = 1.5 - 0.5 * (sn * sn + cn * cn)  # one Newton step back to the unit circle
+            sn, cn = sn * unit, cn * unit
         else:
             sa, ca = sincos(state.phi + a * h * u_phi)
             sn, cn = sincos(phi_next)

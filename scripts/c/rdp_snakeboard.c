@@ -1,8 +1,9 @@
-/* The snakeboard's closed-form RDP step (alpha = 1/2, exp retraction; DESIGN.md section 6) in C,
- * for scripts/bench.py: the compiled-code baseline that ldap_jax's fast path is timed against.
- * Same arithmetic as ldap_jax/integrators/_fast.py (positions only, no diagnostics), so the
- * trajectories agree to round-off (bench.py checks it). Built at bench time with the system's C
- * compiler; nothing here is part of the library.
+/* The snakeboard's closed-form RDP step (alpha = 1/2, exp retraction; docs/integrators.md) in C,
+ * for scripts/bench.py: the compiled-code baseline that ldap_jax's closed-form kernel is timed
+ * against. Same arithmetic as Snakeboard.kernel_step in ldap_jax/systems/_snakeboard.py (positions
+ * only, no diagnostics; the previous step's force kept apart, which equals the library's folded
+ * momentum at a constant step), so the trajectories agree to round-off (bench.py checks it). Built
+ * at bench time with the system's C compiler; nothing here is part of the library.
  *
  * State per trajectory: the pose (theta, cos, sin, x, y), psi, phi with its cos and sin, the
  * incoming momenta pu (2) and mu (the 2 components that pair with e_1), the previous force and the

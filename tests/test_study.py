@@ -1,5 +1,6 @@
-"""The Monte Carlo study (ldap_jax.sweeps, scripts/sweep.py): rollouts equal simulate, a tiny
-study gives the CSV columns and finite numbers, and the sharded run equals the unsharded one."""
+"""The Monte Carlo study (ldap_jax.study, scripts/sweep.py): its batched rollouts equal simulate
+(save stride, integer result codes), a tiny study gives the CSV columns and finite numbers, and
+the sharded run equals the unsharded one."""
 
 import os
 import subprocess
@@ -10,10 +11,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import index, systems
+from helpers import code, simulate_batch, systems
 
 import ldap_jax as lj
-from ldap_jax import sweeps
+from ldap_jax import study
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SYSTEMS = systems()
@@ -21,8 +22,8 @@ SYSTEMS = systems()
 
 def test_maneuvers_reproducible_and_consistent():
     sb = SYSTEMS["snakeboard"]
-    q0, qdot0, ctl = sweeps.sample_maneuvers(sb, 16, seed=7)
-    q0b, _, ctlb = sweeps.sample_maneuvers(sb, 16, seed=7)
+    q0, qdot0, ctl = study.sample_maneuvers(sb, 16, seed=7)
+    q0b, _, ctlb = study.sample_maneuvers(sb, 16, seed=7)
     np.testing.assert_array_equal(q0, q0b)
     np.testing.assert_array_equal(ctl.amplitude, ctlb.amplitude)
     # on the constraints, steering rate zero at t = 0, steering torque consistent with phidot(0)
@@ -32,33 +33,40 @@ def test_maneuvers_reproducible_and_consistent():
     assert float(jnp.max(jnp.abs(jnp.cos(ctl.phase[:, 1, 0])))) < 1e-15
     assert float(jnp.max(jnp.abs(q0[:, 4]))) < 1.0  # |phi(0)| <= |phi_c| + b <= max_steer
     with pytest.raises(ValueError, match="'n'"):
-        sweeps.sample_maneuvers(sb, 0, seed=0)
+        study.sample_maneuvers(sb, 0, seed=0)
 
 
 @pytest.mark.parametrize("method", ["rdp", "dla"])
-def test_rollout_equals_simulate(method):
+def test_batch_rollout_equals_simulate(method):
+    """batch_rollout is simulate with save stride N / n_out (positions only); its integer codes
+    are the trajectories' result codes."""
     sb = SYSTEMS["snakeboard"]
-    man = sweeps.sample_maneuvers(sb, 3, seed=1)
-    integrator = sweeps.make_integrator(method)
-    q_out, code, _ = sweeps.batch_rollout(sb, integrator, man, 4.0, 80, n_out=20)
-    for i in range(3):
-        traj = lj.simulate(sb, *index(man, i), t_final=4.0, n_steps=80, integrator=integrator)
-        np.testing.assert_allclose(q_out[i], traj.q[::4], rtol=1e-12, atol=1e-12)
-        assert int(code[i]) == int(traj.result)
+    man = study.sample_maneuvers(sb, 3, seed=1)
+    integrator = study.make_integrator(method)
+    q_out, codes, seconds = study.batch_rollout(sb, integrator, man, 4.0, 80, n_out=20)
+    assert q_out.shape == (3, 21, 5) and codes.dtype.kind == "i" and np.isnan(seconds)
+    traj = simulate_batch(sb, integrator, man, 4.0, 80, save=4)
+    np.testing.assert_allclose(q_out, traj.q, rtol=1e-12, atol=1e-12)
+    np.testing.assert_array_equal(codes, code(traj.result))
+    np.testing.assert_array_equal(codes, 0)
+    with pytest.raises(ValueError, match="'n_steps'"):
+        study.batch_rollout(sb, integrator, man, 4.0, 80, n_out=30)
 
 
-def test_rollout_reports_failures_like_simulate():
+def test_batch_rollout_reports_failures_like_simulate():
     sb = SYSTEMS["snakeboard"]
-    man = index(sweeps.sample_maneuvers(sb, 8, seed=5), slice(0, 8))
-    q_out, code, _ = sweeps.batch_rollout(sb, lj.DLA(), man, 60.0, 20, n_out=20)
+    man = study.sample_maneuvers(sb, 8, seed=5)
+    q_out, codes, _ = study.batch_rollout(sb, lj.DLA(), man, 60.0, 20, n_out=20)
+    traj = simulate_batch(sb, lj.DLA(), man, 60.0, 20)
+    np.testing.assert_array_equal(codes, code(traj.result))
+    assert bool(np.any(codes != 0))  # h = 3 s: some runs fail, and are reported
     for i in range(8):
-        traj = lj.simulate(sb, *index(man, i), t_final=60.0, n_steps=20, integrator=lj.DLA())
-        assert int(code[i]) == int(traj.result)
-    assert bool(np.any(code != 0))  # h = 3 s: some runs fail, and are reported
+        assert (codes[i] == 0) == bool(traj.result[i] == lj.RESULTS.successful)
+        np.testing.assert_array_equal(np.isnan(q_out[i]), np.isnan(np.asarray(traj.q[i])))
 
 
 def test_tiny_study(tmp_path):
-    config = sweeps.StudyConfig(
+    config = study.StudyConfig(
         models=("snakeboard", "car"),
         durations=(2.0,),
         methods=("rdp", "gni", "dla", "rk2"),
@@ -68,15 +76,15 @@ def test_tiny_study(tmp_path):
         reference_check=2,
     )
     assert config.output_nodes == 20
-    rows = sweeps.run_study(config)
+    rows = study.run_study(config)
     assert len(rows) == 2 * 4 * 2
     path = tmp_path / "sweep.csv"
-    sweeps.write_csv(rows, path)
-    back = sweeps.read_csv(path)
-    assert list(back[0]) == list(sweeps.CSV_COLUMNS)
+    study.write_csv(rows, path)
+    back = study.read_csv(path)
+    assert list(back[0]) == list(study.CSV_COLUMNS)
     assert {r["method"] for r in back} == {"rdp", "gni", "dla", "rk2"}
     for r in back:
-        for col in sweeps.CSV_COLUMNS:
+        for col in study.CSV_COLUMNS:
             if col not in ("model", "method"):
                 assert np.isfinite(r[col]), (col, r)
         assert r["failures"] == 0 and r["blowup"] == 0
@@ -84,21 +92,24 @@ def test_tiny_study(tmp_path):
         assert r["reference_error"] < 1e-8
         # second order methods at h = 0.05 over 2 s: small but nonzero errors
         assert 0 < r["final_error_median"] < 1e-2
-    ratios = sweeps.runtime_ratios(back)
+    ratios = study.runtime_ratios(back)
     assert {r["ratio"] for r in ratios} == {"rdp/rk2", "gni/rdp", "dla/rdp"}
     assert all(np.isfinite(r["equal_n"]) for r in ratios)
-    figs = sweeps.plot_study(back, tmp_path)
+    figs = study.plot_study(back, tmp_path)
     assert len(figs) == 2 and all(os.path.getsize(f) > 0 for f in figs)
-    assert "| rdp |" in sweeps.format_table(back)
+    assert "| rdp |" in study.format_table(back)
+    # an empty study still writes the header
+    study.write_csv([], tmp_path / "empty.csv")
+    assert (tmp_path / "empty.csv").read_text().splitlines() == [",".join(study.CSV_COLUMNS)]
 
 
 def test_config_errors():
     with pytest.raises(ValueError, match="'methods'"):
-        sweeps.StudyConfig(methods=("rk5",))
+        study.StudyConfig(methods=("rk5",))
     with pytest.raises(ValueError, match="'resolutions'"):
-        sweeps.StudyConfig(resolutions=(100, 150), n_out=100)
+        study.StudyConfig(resolutions=(100, 150), n_out=100)
     with pytest.raises(ValueError, match="'method'"):
-        sweeps.make_integrator("euler")
+        study.make_integrator("euler")
 
 
 SHARDED = textwrap.dedent(
@@ -106,19 +117,19 @@ SHARDED = textwrap.dedent(
     import jax
     jax.config.update("jax_enable_x64", True)
     import numpy as np
-    from ldap_jax import sweeps
+    from ldap_jax import study
     assert len(jax.devices()) == 4, jax.devices()
     for model, method in (("snakeboard", "rdp"), ("car", "dla"), ("snakeboard", "gni")):
-        system = sweeps.MODELS[model]()
-        man = sweeps.sample_maneuvers(system, 6, seed=3)  # 6: padded to 8 on 4 devices
-        q4, c4, _ = sweeps.batch_rollout(system, sweeps.make_integrator(method), man, 3.0, 60, n_out=10)
-        one = sweeps.device_mesh(jax.devices()[:1])
-        q1, c1, _ = sweeps.batch_rollout(system, sweeps.make_integrator(method), man, 3.0, 60, n_out=10,
+        system = study.MODELS[model]()
+        man = study.sample_maneuvers(system, 6, seed=3)  # 6: padded to 8 on 4 devices
+        q4, c4, _ = study.batch_rollout(system, study.make_integrator(method), man, 3.0, 60, n_out=10)
+        one = study.device_mesh(jax.devices()[:1])
+        q1, c1, _ = study.batch_rollout(system, study.make_integrator(method), man, 3.0, 60, n_out=10,
                                          mesh=one)
         assert q4.shape == (6, 11, 5), q4.shape
         np.testing.assert_allclose(q4, q1, rtol=1e-13, atol=1e-13)
         np.testing.assert_array_equal(c4, c1)
-    (sharded, n) = sweeps.shard_batch(man, sweeps.device_mesh())
+    (sharded, n) = study.shard_batch(man, study.device_mesh())
     assert n == 6 and len(sharded[0].sharding.device_set) == 4 and sharded[0].shape[0] == 8
     print("OK")
     """
@@ -162,7 +173,7 @@ def test_script_quick_configuration(tmp_path):
         timeout=600,
     )
     assert out.returncode == 0, out.stderr[-3000:]
-    rows = sweeps.read_csv(tmp_path / "sweep.csv")
+    rows = study.read_csv(tmp_path / "sweep.csv")
     assert [r["method"] for r in rows] == ["rdp", "rdp", "rk2", "rk2"]
     assert os.path.exists(tmp_path / "sweep_car_2s.png")
     bad = subprocess.run(

@@ -1,0 +1,186 @@
+"""Convergence (error against step) and work-precision (error against runtime) diagrams."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import matplotlib.pyplot as plt
+import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.figure import Figure
+from matplotlib.ticker import NullFormatter
+
+from ._common import root_figure, style_for
+
+__all__ = ["plot_convergence", "plot_work_precision", "fitted_order"]
+
+
+def _xy(value: Any, label: str, *, pairs_first: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(x, y, order)``, sorted by x, from two sequences ``(xs, ys)`` or a sequence of ``(x, y)``
+    pairs (``pairs_first`` decides the ambiguous 2 x 2 case); ``order`` sorts the input."""
+    arr = np.asarray(value, dtype=float)
+    if arr.ndim != 2 or 2 not in arr.shape:
+        raise ValueError(f"{label!r}: expected (xs, ys) or a sequence of (x, y) pairs, got shape {arr.shape}")
+    as_pairs = arr.shape[1] == 2 and (pairs_first or arr.shape[0] != 2)
+    x, y = (arr[:, 0], arr[:, 1]) if as_pairs else (arr[0], arr[1])
+    order = np.argsort(x)
+    return x[order], y[order], order
+
+
+def fitted_order(h: Sequence[float], err: Sequence[float], *, floor: float = 0.0) -> float:
+    """Least-squares slope of ``log err`` against ``log h`` over the points with a finite error
+    above ``floor`` (NaN with fewer than two such points)."""
+    h, err = np.asarray(h, float), np.asarray(err, float)
+    ok = np.isfinite(err) & (err > floor) & np.isfinite(h) & (h > 0)
+    if ok.sum() < 2:
+        return float("nan")
+    return float(np.polyfit(np.log(h[ok]), np.log(err[ok]), 1)[0])
+
+
+def plot_convergence(
+    results: Mapping[str, Any],
+    *,
+    ax: Axes | None = None,
+    slopes: Sequence[int] = (2, 4, 6),
+    floor: float = 1e-11,
+    floor_label: str = "below: not fitted (reference accuracy)",
+    xlabel: str = "step h [s]",
+    ylabel: str = "final position error [m]",
+    title: str | None = None,
+    styles: Mapping[str, dict] | None = None,
+) -> Figure:
+    """Log-log error against step size, one curve per method, with reference slopes.
+
+    Each legend entry gives the least-squares order fitted over the points above ``floor`` (the
+    reference's own accuracy: points below it are drawn but not fitted). The reference lines
+    ``C h^p`` (grey, for each ``p`` in ``slopes``) run a factor 3 below the curve whose fitted
+    order is ``p`` (through the geometric mean of all errors when no curve has that order).
+
+    Args:
+        results: label -> ``(steps, errors)`` (two sequences) or a sequence of ``(h, error)``
+            pairs; NaN errors (failed runs) are skipped.
+        ax: axes to draw into (default: a new figure).
+        slopes: orders of the reference lines.
+        floor: errors at or below it are excluded from the fitted orders (units of the errors).
+        floor_label: note on the floor line (drawn when some error is below it).
+        xlabel: x label (with units).
+        ylabel: y label (with units).
+        title: axes title.
+        styles: label -> keyword arguments for ``Axes.plot``.
+
+    Returns:
+        The figure.
+    """
+    styles = styles or {}
+    if ax is None:
+        _, ax = plt.subplots(figsize=(6.4, 4.6), layout="constrained")
+    data = {label: _xy(v, label, pairs_first=False)[:2] for label, v in results.items()}
+    for i, (label, (h, err)) in enumerate(data.items()):
+        p = fitted_order(h, err, floor=floor)
+        name = f"{label} (fitted order {p:.1f})" if np.isfinite(p) else label
+        kw = {"lw": 1.5, "ms": 5, **style_for(label, i, markers=True), **styles.get(label, {})}
+        ok = np.isfinite(err) & (err > 0)
+        ax.loglog(h[ok], err[ok], label=name, **kw)
+    all_h = np.concatenate([h for h, _ in data.values()]) if data else np.array([])
+    all_e = np.concatenate([e for _, e in data.values()]) if data else np.array([])
+    good = np.isfinite(all_e) & (all_e > 0)
+    if good.any():
+        ylim = (all_e[good].min() / 3, all_e[good].max() * 3)
+        h_lo, h_hi = all_h[good].min(), all_h[good].max()
+        hs = np.geomspace(h_lo, h_hi, 20)
+        orders = {label: fitted_order(h, e, floor=floor) for label, (h, e) in data.items()}
+        for p, ls in zip(slopes, ("--", "-.", ":", (0, (5, 1)))):
+            # anchor a third below the largest-step error of the curve of that order, if any
+            match = [lab for lab, o in orders.items() if np.isfinite(o) and abs(o - p) < 0.5]
+            if match:
+                h, e = data[match[0]]
+                ok = np.isfinite(e) & (e > floor)
+                anchor_h, anchor_e = h[ok][-1], e[ok][-1] / 3
+            else:
+                anchor_h, anchor_e = h_hi, float(np.exp(np.mean(np.log(all_e[good]))))
+            ax.loglog(
+                hs,
+                anchor_e * (hs / anchor_h) ** p,
+                color="0.45",
+                ls=ls,
+                lw=1.0,
+                label=f"slope {p}: $\\propto h^{p}$",
+            )
+        ax.set_ylim(*ylim)
+        steps = np.unique(all_h[good])
+        if steps.size <= 8:
+            ax.set_xticks(steps, [f"{x:g}" for x in steps])
+            ax.xaxis.set_minor_formatter(NullFormatter())
+        if floor > 0 and all_e[good].min() < floor:
+            ax.axhline(floor, color="0.6", lw=0.8, ls=(0, (1, 2)))
+            ax.annotate(
+                floor_label,
+                (0.01, floor),
+                xycoords=("axes fraction", "data"),
+                ha="left",
+                va="top",
+                fontsize=7,
+                color="0.4",
+            )
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    if title is not None:
+        ax.set_title(title, fontsize=10)
+    ax.grid(True, which="both", alpha=0.25)
+    if data:
+        ax.legend(fontsize=7, loc="best")
+    return root_figure(ax)
+
+
+def plot_work_precision(
+    curves: Mapping[str, Any],
+    *,
+    ax: Axes | None = None,
+    annotations: Mapping[str, Sequence[str]] | None = None,
+    xlabel: str = "runtime [s]",
+    ylabel: str = "position error [m]",
+    title: str | None = None,
+    styles: Mapping[str, dict] | None = None,
+) -> Figure:
+    """Work-precision diagram: error against runtime, log-log, one curve per method (lower left
+    is better: less error for less time).
+
+    Args:
+        curves: label -> sequence of ``(seconds, error)`` pairs (or ``(seconds_list, errors)``);
+            non-finite points are skipped.
+        ax: axes to draw into (default: a new figure).
+        annotations: label -> one text per point (in the given order, e.g. ``"N=100"``).
+        xlabel: x label (with units).
+        ylabel: y label (with units).
+        title: axes title.
+        styles: label -> keyword arguments for ``Axes.plot``.
+
+    Returns:
+        The figure.
+    """
+    styles = styles or {}
+    annotations = annotations or {}
+    if ax is None:
+        _, ax = plt.subplots(figsize=(6.4, 4.6), layout="constrained")
+    for i, (label, value) in enumerate(curves.items()):
+        secs, errs, order = _xy(value, label, pairs_first=True)
+        ok = np.isfinite(secs) & np.isfinite(errs) & (secs > 0) & (errs > 0)
+        kw = {"lw": 1.5, "ms": 5, **style_for(label, i, markers=True), **styles.get(label, {})}
+        ax.loglog(secs[ok], errs[ok], label=label, **kw)
+        texts = annotations.get(label)
+        if texts is not None:
+            texts = [texts[j] for j in order]
+            for s, e, txt, keep in zip(secs, errs, texts, ok):
+                if keep:
+                    ax.annotate(
+                        txt, (s, e), xytext=(4, 3), textcoords="offset points", fontsize=6, color="0.3"
+                    )
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    if title is not None:
+        ax.set_title(title, fontsize=10)
+    ax.grid(True, which="both", alpha=0.25)
+    if curves:
+        ax.legend(fontsize=7, loc="best")
+    return root_figure(ax)

@@ -1,0 +1,372 @@
+"""Optimal control against CasADi + IPOPT: the three goal tasks, solved both ways in one run.
+
+    python scripts/bench_control.py --out results            # all three tasks, 64-problem batch
+    python scripts/bench_control.py --quick --out results    # parallel_park and u_turn, smaller batch
+
+For each task (``parallel_park``, ``u_turn``, ``reach``; see ``scripts/casadi_baseline.py`` for the
+common formulation: node controls interpolated linearly, effort objective, terminal pose and rest
+as equalities, bounds at the nodes):
+
+* CasADi 3 + IPOPT (direct multiple shooting with RK4, default options), when CasADi is installed
+  (``pip install .[bench]``): build + first solve, repeat solve, iterations, terminal errors of
+  its controls replayed on an independent DOP853 solution;
+* ``lc.solve`` (interior point with Riccati steps on the discrete dynamics of ``lj.RDP(order=4)``
+  by default): first call (compilation included, cold), repeat, iterations, terminal errors of
+  its controls replayed on ``lj.reference``, bound violations at the nodes on the reference;
+* a batch of problems (goals perturbed around the task's) in one ``jax.vmap``-ed call, against
+  one solve;
+* the derivative of the optimal effort with respect to the goal by the implicit function theorem
+  against central differences of re-solves;
+* optionally (``--cache``) the first call in a new process with JAX's persistent compilation
+  cache warm (``lj.enable_compilation_cache``).
+
+Writes ``OUT/bench_control.json`` and ``OUT/bench_control.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import pathlib
+import subprocess
+import sys
+import tempfile
+import time
+
+# JAX, NumPy, the library and the CasADi baseline are imported by _load(), after the flags are
+# parsed and checked: a bad flag fails at once (exit status 2, the flag named).
+jax = jnp = np = lj = lc = cb = None
+
+TASK_NAMES = ("parallel_park", "u_turn", "reach")
+TASK_FACTORIES: dict = {}  # name -> lc.parallel_park, ... (filled by _load)
+INTEGRATORS = {
+    "rdp2": lambda: lj.RDP(),
+    "rdp4": lambda: lj.RDP(order=4),
+    "rdp6": lambda: lj.RDP(order=6),
+    "rk4": lambda: lj.RK4(),
+}
+
+
+def _load():
+    """Import JAX (float64), NumPy, the library and the CasADi baseline script."""
+    global jax, jnp, np, lj, lc, cb
+    import jax as jax_
+
+    jax_.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp_
+    import numpy as np_
+
+    import ldap_jax as lj_
+    from ldap_jax import control as lc_
+
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    import casadi_baseline as cb_
+
+    jax, jnp, np, lj, lc, cb = jax_, jnp_, np_, lj_, lc_, cb_
+    TASK_FACTORIES.update({name: getattr(lc_, name) for name in TASK_NAMES})
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}")
+    return value
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """Settings of a run (``--quick`` shrinks them)."""
+
+    tasks: tuple[str, ...] = ("parallel_park", "u_turn", "reach")
+    integrator: str = "rdp4"
+    repeats: int = 3
+    batch: int = 64
+    batch_task: str = "parallel_park"
+    tol: float = 1e-8
+    cache: bool = False
+    out: str = "results"
+
+
+def _time(fn, repeats):
+    t = time.perf_counter()
+    first = jax.block_until_ready(fn())
+    t_first = time.perf_counter() - t
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append(time.perf_counter() - t)
+    return first, t_first, float(np.median(times))
+
+
+def ours(task_name: str, cfg: Config, log) -> dict:
+    task = TASK_FACTORIES[task_name](integrator=INTEGRATORS[cfg.integrator]())
+    sol, first, repeat = _time(lambda: lc.solve(task, tol=cfg.tol), cfg.repeats)
+    rp = lc.replay(task, sol.params)
+    row = dict(
+        task=task_name,
+        integrator=cfg.integrator,
+        first_call_s=first,
+        repeat_s=repeat,
+        iterations=int(sol.iterations),
+        converged=bool(sol.converged),
+        result=lc.SOLVER_RESULTS[sol.result],
+        objective=float(sol.cost),
+        model_violation=float(sol.max_violation),
+        position_error=rp["final_position_error"],
+        heading_error=rp["final_heading_error"],
+        terminal_speed=rp["final_speed_ref"],
+        bound_violation=rp["max_bound_violation"],
+        model_error=rp["model_position_error"],
+    )
+    log(
+        f"  ours {task_name}: first {first:.2f} s, repeat {repeat:.3f} s, {row['iterations']} it, "
+        f"position error {row['position_error']:.1e} m, heading {row['heading_error']:.1e} rad"
+    )
+    return row
+
+
+def casadi(task_name: str, cfg: Config, log) -> dict | None:
+    try:
+        import casadi  # noqa: F401
+    except ImportError:
+        log("  CasADi is not installed (pip install .[bench]): skipped")
+        return None
+    r = cb.run_task(task_name, repeats=cfg.repeats)
+    row = dict(
+        task=task_name,
+        first_call_s=r["first_call"],
+        repeat_s=r["repeat_time"],
+        iterations=int(r["iterations"]),
+        converged=bool(r["success"]),
+        result=r["return_status"],
+        objective=float(r["objective"]),
+        position_error=float(r["position_error"]),
+        heading_error=float(r["heading_error"]),
+        terminal_speed=float(r["terminal_speed"]),
+        bound_violation=float(r["max_violation"]),
+        guess=r.get("guess"),
+    )
+    log(
+        f"  CasADi {task_name}: first {row['first_call_s']:.2f} s, repeat {row['repeat_s']:.3f} s, "
+        f"{row['iterations']} it, position error {row['position_error']:.1e} m"
+    )
+    return row
+
+
+def batched(cfg: Config, log) -> dict:
+    task = TASK_FACTORIES[cfg.batch_task](integrator=INTEGRATORS[cfg.integrator]())
+    key = jax.random.PRNGKey(0)
+    goals = task.goal[None] + 0.05 * jax.random.normal(key, (cfg.batch, 3)) * jnp.array([1.0, 0.2, 0.2])
+    p0 = task.init()
+
+    def many():
+        return jax.vmap(lambda g: lc.solve(task.with_options(goal=g), p0, tol=cfg.tol))(goals)
+
+    sols, first, repeat = _time(many, max(1, cfg.repeats - 1))
+    _, _, single = _time(lambda: lc.solve(task, p0, tol=cfg.tol), cfg.repeats)
+    row = dict(
+        task=cfg.batch_task,
+        batch=cfg.batch,
+        first_call_s=first,
+        batch_s=repeat,
+        single_s=single,
+        ratio=repeat / single,
+        converged=int(np.sum(np.asarray(sols.converged))),
+        max_iterations=int(np.max(np.asarray(sols.iterations))),
+    )
+    log(
+        f"  batch of {cfg.batch}: {repeat:.2f} s vs one {single:.3f} s (x{row['ratio']:.1f}), "
+        f"{row['converged']}/{cfg.batch} converged"
+    )
+    return row
+
+
+def sensitivity(cfg: Config, log) -> dict:
+    task = TASK_FACTORIES["parallel_park"](integrator=INTEGRATORS[cfg.integrator]())
+    p0 = task.init()
+
+    def cost(goal):
+        return lc.solve(task.with_options(goal=goal), p0, tol=1e-10).cost
+
+    g0 = task.goal
+    ift = np.asarray(jax.grad(cost)(g0))
+    eps = 1e-4
+    fd = np.array(
+        [
+            (float(cost(g0 + jnp.zeros(3).at[i].set(eps))) - float(cost(g0 - jnp.zeros(3).at[i].set(eps))))
+            / (2 * eps)
+            for i in range(3)
+        ]
+    )
+    rel = float(np.max(np.abs(ift - fd) / np.maximum(np.abs(fd), 1e-12)))
+    log(f"  d effort / d goal: IFT {ift}, central differences {fd} (max rel. difference {rel:.1e})")
+    return dict(ift=ift.tolist(), finite_differences=fd.tolist(), max_relative_difference=rel)
+
+
+_WARM = """
+import time, jax
+jax.config.update("jax_enable_x64", True)
+import ldap_jax as lj
+from ldap_jax import control as lc
+lj.enable_compilation_cache({path!r}, min_compile_seconds=0.0)
+t = time.perf_counter()
+task = lc.{task}(integrator=lj.RDP(order=4))
+jax.block_until_ready(lc.solve(task).params)
+print(time.perf_counter() - t)
+"""
+
+
+def warm_first_call(task_name: str, log) -> dict:
+    """First call in a new process with the persistent cache: run once to fill it, once to use it."""
+    path = tempfile.mkdtemp(prefix="ldap_jax_cache_")
+    code = _WARM.format(path=path, task=task_name)
+    times = []
+    for _ in range(2):
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+        times.append(float(out.stdout.strip().splitlines()[-1]))
+    log(f"  persistent cache, {task_name}: cold process {times[0]:.1f} s, warm process {times[1]:.2f} s")
+    return dict(task=task_name, cold_process_s=times[0], warm_process_s=times[1])
+
+
+def markdown(res: dict) -> str:
+    lines = [
+        "# Optimal control: ldap_jax `lc.solve` vs CasADi + IPOPT",
+        "",
+        f"Machine: {res['machine']}. Integrator of `lc.solve`: {res['config']['integrator']}; CasADi: RK4 "
+        "multiple shooting, default IPOPT options. Terminal errors: each method's controls replayed on an "
+        "independent high-accuracy solution (ours: `lj.reference`; CasADi: SciPy DOP853).",
+        "",
+        "| task | method | first call [s] | repeat [s] | iterations | position error [m] "
+        "| heading error [rad] "
+        "| terminal speed | bound violation | objective |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name in res["config"]["tasks"]:
+        for label, row in (("CasADi + IPOPT", res["casadi"].get(name)), ("lc.solve", res["ours"].get(name))):
+            if row is None:
+                continue
+            lines.append(
+                f"| {name} | {label} | {row['first_call_s']:.2f} | {row['repeat_s']:.3f} "
+                f"| {row['iterations']} "
+                f"| {row['position_error']:.1e} | {row['heading_error']:.1e} | {row['terminal_speed']:.1e} "
+                f"| {row['bound_violation']:.1e} | {row['objective']:.6g} |"
+            )
+    ratios = []
+    for name in res["config"]["tasks"]:
+        o, c = res["ours"].get(name), res["casadi"].get(name)
+        if o and c:
+            ratios.append(
+                f"| {name} | {o['repeat_s'] / c['repeat_s']:.2f} "
+                f"| {o['first_call_s'] / c['first_call_s']:.1f} |"
+            )
+    if ratios:
+        lines += [
+            "",
+            "| task | repeat: ours / CasADi | first call: ours / CasADi |",
+            "|---|---|---|",
+            *ratios,
+        ]
+    b = res.get("batch")
+    if b:
+        lines += [
+            "",
+            f"Batch: {b['batch']} `{b['task']}` problems (perturbed goals) in one vmapped call: "
+            f"{b['batch_s']:.2f} s vs {b['single_s']:.3f} s for one ({b['ratio']:.1f}x); "
+            f"{b['converged']}/{b['batch']} converged.",
+        ]
+    s = res.get("sensitivity")
+    if s:
+        lines += [
+            "",
+            f"Sensitivity of the optimal effort to the goal (implicit function theorem vs central "
+            f"differences of re-solves): max relative difference {s['max_relative_difference']:.1e}.",
+        ]
+    for w in res.get("warm", []):
+        lines += [
+            "",
+            f"Persistent compilation cache ({w['task']}): first call in a new process "
+            f"{w['cold_process_s']:.1f} s cold, {w['warm_process_s']:.2f} s warm.",
+        ]
+    return "\n".join(lines) + "\n"
+
+
+def parse_args(argv=None):
+    """Parse and check every flag (exit status 2 and a message naming the flag on a bad one),
+    before JAX is imported and before any computation; ``--out`` is created here."""
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument(
+        "--quick", action="store_true", help="parallel_park and u_turn, a batch of 16 (default: all, 64)"
+    )
+    p.add_argument("--out", default="results", help="output directory (default: results)")
+    p.add_argument(
+        "--integrator", choices=sorted(INTEGRATORS), default="rdp4", help="lc.solve's model (default: rdp4)"
+    )
+    p.add_argument(
+        "--repeats", type=_positive_int, default=3, help="timed repeats after the first call (default: 3)"
+    )
+    p.add_argument(
+        "--cache", action="store_true", help="also time the first call with a warm persistent cache"
+    )
+    args = p.parse_args(argv)
+    out = pathlib.Path(args.out)
+    if out.exists() and not out.is_dir():
+        p.error(f"argument --out: {args.out!r} exists and is not a directory")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        p.error(f"argument --out: cannot create {args.out!r}: {err}")
+    return args
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    _load()
+    out = pathlib.Path(args.out)
+    cfg = Config(
+        tasks=("parallel_park", "u_turn") if args.quick else Config.tasks,
+        integrator=args.integrator,
+        repeats=args.repeats,
+        batch=16 if args.quick else 64,
+        cache=args.cache,
+        out=str(out),
+    )
+    t0 = time.perf_counter()
+
+    def log(msg):
+        print(f"[{time.perf_counter() - t0:6.1f}s] {msg}", flush=True)
+
+    res = {
+        "machine": f"{os.cpu_count()} cores, jax {jax.__version__}, {jax.devices()[0].platform}",
+        "config": dataclasses.asdict(cfg),
+        "ours": {},
+        "casadi": {},
+    }
+    for name in cfg.tasks:
+        log(name)
+        row = casadi(name, cfg, log)
+        if row:
+            res["casadi"][name] = row
+        res["ours"][name] = ours(name, cfg, log)
+    log("batch")
+    res["batch"] = batched(cfg, log)
+    log("sensitivity")
+    res["sensitivity"] = sensitivity(cfg, log)
+    if cfg.cache:
+        res["warm"] = [warm_first_call(name, log) for name in cfg.tasks[:1]]
+    res["total_s"] = time.perf_counter() - t0
+    (out / "bench_control.json").write_text(json.dumps(res, indent=1, default=str) + "\n")
+    md = markdown(res)
+    (out / "bench_control.md").write_text(md)
+    print(md)
+    log(f"wrote {out / 'bench_control.json'} and {out / 'bench_control.md'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,978 @@
+"""No silent failures: a battery of bad inputs and faults across the public API.
+
+Every case asserts the specific error type and that the message names the argument (or flag), or
+the specific result code (:data:`lj.RESULTS`), eagerly, under ``jax.jit`` and under ``jax.vmap``
+where that applies. Nothing here can hang, by construction: every rollout has a fixed number of
+steps, every ``reference`` solve a small ``max_steps`` (and stops at once on non-finite states
+and at the singularity), and the scripts are run with bad flags only, with a stand-in ``jax``
+module that fails on import, so a case passes only if the script rejects the flag before
+importing JAX (and before any computation).
+
+The runs share a few compiled programs (compiling dominates the cost): the traced cases of
+``simulate`` are data fed to one jitted and one vmapped program (snakeboard, RDP, N = 10, every
+input traced), the eager ones to one eager program; ``reference`` likewise (3 samples,
+``max_steps=REF_MAX``). Run with ``-n 2 --dist loadgroup`` to compile each family once.
+"""
+
+from __future__ import annotations
+
+import ast
+import functools
+import os
+import subprocess
+import sys
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import ldap_jax as lj
+from ldap_jax import _compilation_cache as cc
+from ldap_jax import _simulate as simulate_module
+from ldap_jax import control as lc
+from ldap_jax import study
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+R = lj.RESULTS
+NAN, INF = float("nan"), float("inf")
+
+# ------------------------------------------------------------------------------- the problem
+# the issue's snakeboard and gait, from rest
+SB = lj.Snakeboard(m=1.0, l=0.5, I=0.05, J=0.02)
+CAR = lj.Car()
+PARAMS = (1.0, 0.5, 0.05, 0.02)  # (m, l, I, J)
+Z5 = jnp.zeros(5)
+AMP = jnp.array([[0.1], [-0.048]])
+FREQ = jnp.array([[1.0], [2.0]])
+PHASE = jnp.array([[0.0], [-np.pi / 2]])
+CTL = lj.Sinusoids(AMP, FREQ, PHASE)
+#: a steering torque -0.2 cos(2 t): phi = 1.25 (cos 2t - 1) crosses -pi/2 (cos(phi) = 0) at 0.92 s
+SINGULAR_AMP = jnp.array([[0.1], [0.2]])
+HUGE_AMP = jnp.array([[1e160], [-0.048]])  # finite, but the energy overflows
+SLIDE = jnp.array([0.0, 1.0, 0.0, 0.0, 0.0])  # sideways sliding: violates the constraints
+N, TF = 10, 5.0
+REF_MAX = 64  # reference: every solve is bounded by 64 steps
+REF_TOL = 1e-8
+TS = jnp.array([0.0, 0.25, 0.5])
+TS_SINGULAR = jnp.array([0.0, 2.5, 5.0])
+TS_LONG = jnp.array([0.0, 1e5, 1e6])
+
+
+def code(result) -> int:
+    return int(np.asarray(result._value if isinstance(result, R) else result))
+
+
+def at(x, i, value):
+    return jnp.asarray(x).at[i].set(value)
+
+
+# ================================================================ simulate: every input at once
+# One table, three variants. Each case is data for the same programs: ``eager`` builds the
+# system, integrator and controls concretely (bad values raise, naming the argument), ``jit`` and
+# ``vmap`` trace every input (a bad value fails that trajectory alone with a result code).
+GOOD = dict(params=PARAMS, q0=Z5, qdot0=Z5, amp=AMP, t0=0.0, tf=TF, alpha=0.5)
+
+
+def _case(**kw):
+    return {**GOOD, **kw}
+
+
+def _params(**kw):
+    names = ("m", "l", "I", "J")
+    return tuple(kw.get(n, v) for n, v in zip(names, PARAMS))
+
+
+#: name -> (inputs, eager outcome: an (exception, match) pair or a result, traced result)
+SIM_CASES = {
+    "valid": (_case(), R.successful, R.successful),
+    "m<0": (_case(params=_params(m=-1.0)), (ValueError, "'m'"), R.invalid_input),
+    "m=0": (_case(params=_params(m=0.0)), (ValueError, "'m'"), R.invalid_input),
+    "l=0": (_case(params=_params(l=0.0)), (ValueError, "'l'"), R.invalid_input),
+    "I>ml^2": (_case(params=_params(I=1.0)), (ValueError, "'I'.*I < m l"), R.invalid_input),
+    "J=nan": (_case(params=_params(J=NAN)), (ValueError, "'J'"), R.invalid_input),
+    "m=inf": (_case(params=_params(m=INF)), (ValueError, "'m'"), R.invalid_input),
+    "alpha=1.5": (_case(alpha=1.5), (ValueError, "'alpha'"), R.invalid_input),
+    "alpha=-0.5": (_case(alpha=-0.5), (ValueError, "'alpha'"), R.invalid_input),
+    "alpha=nan": (_case(alpha=NAN), (ValueError, "'alpha'"), R.invalid_input),
+    "t_final<0": (_case(tf=-1.0), (ValueError, "'t_final'"), R.invalid_input),
+    "t_final=0": (_case(tf=0.0), (ValueError, "'t_final'"), R.invalid_input),
+    "t_final=nan": (_case(tf=NAN), (ValueError, "'t_final'"), R.invalid_input),
+    "t_final=inf": (_case(tf=INF), (ValueError, "'t_final'"), R.invalid_input),
+    "t0>t_final": (_case(t0=10.0), (ValueError, "'t_final' must exceed t0"), R.invalid_input),
+    "t0=nan": (_case(t0=NAN), (ValueError, "'t0'"), R.invalid_input),
+    "q0 nan": (_case(q0=at(Z5, 0, NAN)), (ValueError, "'q0' must be finite"), R.invalid_input),
+    # the issue: theta = inf was blamed on qdot0
+    "theta=inf": (_case(q0=at(Z5, 2, INF)), (ValueError, "'q0' must be finite"), R.invalid_input),
+    "qdot0 nan": (_case(qdot0=at(Z5, 3, NAN)), (ValueError, "'qdot0' must be finite"), R.invalid_input),
+    "qdot0 sliding": (_case(qdot0=SLIDE), (ValueError, "'qdot0' violates the constraints"), R.invalid_input),
+    "amplitude nan": (
+        _case(amp=at(AMP, (0, 0), NAN)),
+        (ValueError, "'controls' must be finite.*amplitude"),
+        R.invalid_input,
+    ),
+    "amplitude inf": (
+        _case(amp=at(AMP, (1, 0), INF)),
+        (ValueError, "'controls' must be finite.*amplitude"),
+        R.invalid_input,
+    ),
+    # faults of valid inputs: the result says what happened
+    "singular": (_case(amp=SINGULAR_AMP), R.singular, R.singular),
+    "energy overflow": (_case(amp=HUGE_AMP), R.nonfinite, R.nonfinite),
+}
+
+
+def _run(params, q0, qdot0, amp, t0, tf, alpha):
+    """The traced program: every input an argument."""
+    m, l, i, j = params
+    sb = lj.Snakeboard(m=m, l=l, I=i, J=j)
+    traj = lj.simulate(
+        sb,
+        q0,
+        qdot0,
+        lj.Sinusoids(amp, FREQ, PHASE),
+        t0=t0,
+        t_final=tf,
+        n_steps=N,
+        integrator=lj.RDP(alpha=alpha),
+    )
+    finite = (
+        jnp.all(jnp.isfinite(traj.q)) & jnp.all(jnp.isfinite(traj.energy)) & jnp.all(jnp.isfinite(traj.work))
+    )
+    return dict(
+        result=traj.result._value,
+        failure_index=traj.failure_index,
+        finite=finite,
+        all_nan=jnp.all(jnp.isnan(traj.q)),
+        q_final=traj.q[-1],
+    )
+
+
+def _arrays(case):
+    return dict(
+        params=tuple(jnp.asarray(p, float) for p in case["params"]),
+        q0=jnp.asarray(case["q0"], float),
+        qdot0=jnp.asarray(case["qdot0"], float),
+        amp=jnp.asarray(case["amp"], float),
+        t0=jnp.asarray(case["t0"], float),
+        tf=jnp.asarray(case["tf"], float),
+        alpha=jnp.asarray(case["alpha"], float),
+    )
+
+
+SIM_JIT = jax.jit(_run)
+SIM_VMAP = jax.jit(jax.vmap(_run))
+
+
+@functools.cache
+def _solo_good():
+    return jax.tree_util.tree_map(np.asarray, SIM_JIT(**_arrays(GOOD)))
+
+
+def _check_traced(out, expected, solo=None):
+    assert code(out["result"]) == code(expected), int(out["result"])
+    if expected == R.successful:
+        assert bool(out["finite"]) and int(out["failure_index"]) == N
+    elif expected == R.invalid_input:
+        # reported for this trajectory, every node NaN, failing at node 0
+        assert bool(out["all_nan"]) and int(out["failure_index"]) == 0
+    else:
+        assert not bool(out["finite"]) and 0 <= int(out["failure_index"]) < N
+
+
+@pytest.mark.xdist_group("faults_simulate_eager")
+@pytest.mark.parametrize("name", list(SIM_CASES))
+def test_simulate_eager(name):
+    case, eager, _ = SIM_CASES[name]
+    if isinstance(eager, tuple):
+        exc, match = eager
+        with pytest.raises(exc, match=match):
+            sb = lj.Snakeboard(*case["params"])
+            lj.simulate(
+                sb,
+                case["q0"],
+                case["qdot0"],
+                lj.Sinusoids(case["amp"], FREQ, PHASE),
+                t0=case["t0"],
+                t_final=case["tf"],
+                n_steps=N,
+                integrator=lj.RDP(alpha=case["alpha"]),
+            )
+    else:
+        traj = lj.simulate(
+            SB, case["q0"], case["qdot0"], lj.Sinusoids(case["amp"], FREQ, PHASE), t_final=TF, n_steps=N
+        )
+        assert traj.result == eager, R[traj.result]
+        if eager == R.successful:
+            assert bool(jnp.all(jnp.isfinite(traj.q))) and bool(jnp.all(jnp.isfinite(traj.energy)))
+        else:
+            # NaN from the first failed node on; every returned diagnostic is finite before it
+            k = int(traj.failure_index)
+            assert bool(jnp.all(jnp.isnan(traj.q[k + 1 :])))
+            assert bool(jnp.all(jnp.isfinite(traj.energy[: k + 1])))
+
+
+@pytest.mark.xdist_group("faults_simulate_traced")
+@pytest.mark.parametrize("name", list(SIM_CASES))
+def test_simulate_jit(name):
+    case, _, expected = SIM_CASES[name]
+    _check_traced(SIM_JIT(**_arrays(case)), expected)
+
+
+@pytest.mark.xdist_group("faults_simulate_traced")
+@pytest.mark.parametrize("name", [n for n in SIM_CASES if n != "valid"])
+def test_simulate_vmap_fails_the_bad_member_alone(name):
+    """A batch [good, bad]: the bad member gets its own result; the good one is untouched
+    (identical to a solo run), and nothing raises for the whole batch."""
+    case, _, expected = SIM_CASES[name]
+    batch = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), _arrays(GOOD), _arrays(case))
+    out = jax.tree_util.tree_map(np.asarray, SIM_VMAP(**batch))
+    first, second = (jax.tree_util.tree_map(lambda x: x[i], out) for i in (0, 1))
+    _check_traced(second, expected)
+    _check_traced(first, R.successful)
+    np.testing.assert_allclose(first["q_final"], _solo_good()["q_final"], rtol=1e-12, atol=1e-14)
+
+
+# --------------------------------------------------- simulate inside the user's jit (issue 1, 7)
+@pytest.mark.xdist_group("faults_simulate_closure")
+def test_jit_over_closed_over_valid_inputs():
+    """The issue's case 1: closed-over (concrete) system, state and controls, traced t_final and
+    alpha; the concrete inputs are checked at trace time, the traced ones in the run."""
+    f = jax.jit(
+        lambda tf, a: (
+            lj.simulate(SB, Z5, Z5, CTL, t_final=tf, n_steps=N, integrator=lj.RDP(alpha=a)).result._value
+        )
+    )
+    assert code(f(5.0, 0.5)) == code(R.successful)
+    assert code(f(-1.0, 0.5)) == code(R.invalid_input)
+    assert code(f(5.0, 1.5)) == code(R.invalid_input)
+    g = eqx.filter_jit(lambda tf: lj.simulate(SB, Z5, Z5, CTL, t_final=tf, n_steps=N).result._value)
+    assert code(g(jnp.asarray(5.0))) == code(R.successful)
+
+
+CLOSED_OVER_BAD = {
+    # concrete inputs closed over by the user's jit are checked at trace time, by name
+    "qdot0 sliding": (dict(qdot0=SLIDE), ValueError, "'qdot0' violates"),
+    "q0 nan": (dict(q0=at(Z5, 1, NAN)), ValueError, "'q0' must be finite"),
+    "controls nan": (
+        dict(controls=lj.Sinusoids(at(AMP, (0, 0), NAN), FREQ, PHASE)),
+        ValueError,
+        "'controls'",
+    ),
+    "t0 inf": (dict(t0=INF), ValueError, "'t0'"),
+}
+
+
+@pytest.mark.parametrize("name", list(CLOSED_OVER_BAD))
+def test_jit_checks_closed_over_values_at_trace_time(name):
+    kw, exc, match = CLOSED_OVER_BAD[name]
+    args = dict(q0=Z5, qdot0=Z5, controls=CTL, t0=0.0) | kw
+    with pytest.raises(exc, match=match):
+        jax.jit(
+            lambda tf: (
+                lj.simulate(
+                    SB, args["q0"], args["qdot0"], args["controls"], t0=args["t0"], t_final=tf, n_steps=N
+                ).q
+            )
+        )(5.0)
+
+
+# ---------------------------------------------------------------- simulate: arguments, eagerly
+def _simulate(**kw):
+    args = dict(system=SB, q0=Z5, qdot0=Z5, controls=CTL, t_final=TF, n_steps=N) | kw
+    system, q0, qdot0, controls = (args.pop(k) for k in ("system", "q0", "qdot0", "controls"))
+    return lj.simulate(system, q0, qdot0, controls, **args)
+
+
+SIM_RAISES = {
+    "system": (dict(system="snakeboard"), TypeError, "'system'"),
+    "integrator": (dict(integrator="rdp"), TypeError, "'integrator'"),
+    "controls function": (dict(controls=lambda t: jnp.zeros(2)), TypeError, "'controls'"),
+    "controls channels": (dict(controls=lj.Constant(jnp.zeros(3))), ValueError, "'controls'"),
+    "policy output shape": (
+        dict(controls=lj.Policy(lambda t, q, qd: jnp.zeros(3), 2)),
+        ValueError,
+        "'controls'",
+    ),
+    "policy gain columns": (dict(controls=lj.LinearPolicy(CTL, jnp.zeros((2, 4)))), ValueError, "'controls'"),
+    "q0 shape": (dict(q0=jnp.zeros(4)), ValueError, "'q0'.*shape"),
+    "q0 string": (dict(q0="zeros"), TypeError, "'q0'"),
+    "q0 ragged": (dict(q0=[0.0, [1.0, 2.0]]), TypeError, "'q0'"),
+    "q0 None": (dict(q0=None), TypeError, "'q0'"),
+    "q0 float16": (dict(q0=jnp.zeros(5, jnp.float16)), ValueError, "'q0'.*float32 or float64"),
+    "qdot0 bfloat16": (dict(qdot0=jnp.zeros(5, jnp.bfloat16)), ValueError, "'qdot0'.*float32 or float64"),
+    "qdot0 complex": (dict(qdot0=jnp.zeros(5, jnp.complex64)), ValueError, "'qdot0'"),
+    "qdot0 shape": (dict(qdot0=jnp.zeros((5, 1))), ValueError, "'qdot0'.*shape"),
+    "n_steps 0": (dict(n_steps=0), ValueError, "'n_steps'"),
+    "n_steps -3": (dict(n_steps=-3), ValueError, "'n_steps'"),
+    "n_steps 2.5": (dict(n_steps=2.5), TypeError, "'n_steps'"),
+    "n_steps str": (dict(n_steps="10"), TypeError, "'n_steps'"),
+    "n_steps bool": (dict(n_steps=True), TypeError, "'n_steps'"),
+    "t_final str": (dict(t_final="5"), TypeError, "'t_final'"),
+    "t_final None": (dict(t_final=None), TypeError, "'t_final'"),
+    "t_final vector": (dict(t_final=jnp.array([1.0, 2.0])), ValueError, "'t_final'"),
+    "t0 str": (dict(t0="0"), TypeError, "'t0'"),
+    "save name": (dict(save="some"), ValueError, "'save'"),
+    "save stride": (dict(save=3), ValueError, "'save'"),
+    "save 0": (dict(save=0), ValueError, "'save'"),
+    "save unsorted": (dict(save=[5, 2]), ValueError, "'save'"),
+    "save beyond": (dict(save=[N + 1]), ValueError, "'save'"),
+    "checkpoint name": (dict(checkpoint="x"), ValueError, "'checkpoint'"),
+    "checkpoint <0": (dict(checkpoint=-2), ValueError, "'checkpoint'"),
+    "divergence <0": (dict(divergence=-1.0), ValueError, "'divergence'"),
+    "divergence 0": (dict(divergence=0.0), ValueError, "'divergence'"),
+    "divergence nan": (dict(divergence=NAN), ValueError, "'divergence'"),
+    "divergence str": (dict(divergence="big"), TypeError, "'divergence'"),
+    "divergence bool": (dict(divergence=True), TypeError, "'divergence'"),
+    "sampled controls inf": (
+        dict(controls=lj.Sampled(jnp.zeros((3, 2)).at[1, 0].set(INF), t_final=TF)),
+        ValueError,
+        "'controls'.*values",
+    ),
+}
+
+
+@pytest.mark.parametrize("name", list(SIM_RAISES))
+def test_simulate_arguments(name):
+    kw, exc, match = SIM_RAISES[name]
+    with pytest.raises(exc, match=match):
+        _simulate(**kw)
+
+
+@pytest.mark.xdist_group("faults_simulate_eager")
+def test_simulate_accepts_python_lists():
+    """A weak case of the issue: Python lists for the state (a JAX-internal TypeError before)."""
+    traj = _simulate(q0=[0.0] * 5, qdot0=[0, 0, 0, 0, 0])
+    ref = _simulate()
+    assert traj.result == R.successful
+    np.testing.assert_array_equal(np.asarray(traj.q), np.asarray(ref.q))
+
+
+# ================================================================== systems, integrators, controls
+LAG = lambda r, u, xi: 0.5 * (xi @ xi + u @ u)  # noqa: E731
+CONN = lambda r: jnp.zeros((3, 1))  # noqa: E731
+
+CONSTRUCTOR_RAISES = {
+    # physical parameters: the message names the parameter
+    "Car m str": (lambda: lj.Car(m="heavy"), TypeError, "physical parameter 'm'"),
+    "Car m None": (lambda: lj.Car(m=None), TypeError, "'m'"),
+    "Car rho complex": (lambda: lj.Car(rho=1 + 2j), TypeError, "'rho'"),
+    "Snakeboard I str": (lambda: lj.Snakeboard(I="light"), TypeError, "'I'"),
+    "Car m<0": (lambda: lj.Car(m=-1.0), ValueError, "'m'"),
+    "Car rho=0": (lambda: lj.Car(rho=0.0), ValueError, "'rho'"),
+    "Car l=inf": (lambda: lj.Car(l=INF), ValueError, "'l'"),
+    "Car K=nan": (lambda: lj.Car(K=NAN), ValueError, "'K'"),
+    "Snakeboard J<0": (lambda: lj.Snakeboard(J=-0.02), ValueError, "'J'"),
+    # integrators
+    "RDP alpha>1": (lambda: lj.RDP(alpha=1.5), ValueError, "'alpha'"),
+    "RDP alpha<0": (lambda: lj.RDP(alpha=-0.1), ValueError, "'alpha'"),
+    "GNI alpha nan": (lambda: lj.GNI(alpha=NAN), ValueError, "'alpha'"),
+    # controls
+    "Sinusoids 1-d": (
+        lambda: lj.Sinusoids(jnp.zeros(2), jnp.zeros(2), jnp.zeros(2)),
+        ValueError,
+        "'amplitude'",
+    ),
+    "Sinusoids shapes": (lambda: lj.Sinusoids(jnp.zeros((2, 2)), FREQ, PHASE), ValueError, "shapes differ"),
+    "Sinusoids str": (lambda: lj.Sinusoids("big", FREQ, PHASE), TypeError, "'amplitude'"),
+    "Sinusoids complex": (
+        lambda: lj.Sinusoids(AMP, FREQ, PHASE.astype(jnp.complex128)),
+        TypeError,
+        "'phase'",
+    ),
+    "Sampled one row": (lambda: lj.Sampled(jnp.zeros((1, 2)), t_final=1.0), ValueError, "'values'"),
+    "Sampled t_final=t0": (lambda: lj.Sampled(jnp.zeros((3, 2)), t_final=0.0), ValueError, "'t_final'"),
+    "Sampled t_final<t0": (
+        lambda: lj.Sampled(jnp.zeros((3, 2)), t_final=1.0, t0=2.0),
+        ValueError,
+        "'t_final'",
+    ),
+    "Sampled t_final nan": (lambda: lj.Sampled(jnp.zeros((3, 2)), t_final=NAN), ValueError, "'t_final'"),
+    "Sampled t_final inf": (lambda: lj.Sampled(jnp.zeros((3, 2)), t_final=INF), ValueError, "'t_final'"),
+    "Constant scalar": (lambda: lj.Constant(0.0), ValueError, "'values'"),
+    "Policy fn": (lambda: lj.Policy(3.0, 2), TypeError, "'fn'"),
+    "Policy n_channels<0": (lambda: lj.Policy(lambda t, q, qd: q[:2], -1), ValueError, "'n_channels'"),
+    "Policy n_channels float": (lambda: lj.Policy(lambda t, q, qd: q[:2], 1.5), TypeError, "'n_channels'"),
+    "LinearPolicy feedforward": (
+        lambda: lj.LinearPolicy("ctl", jnp.zeros((2, 10))),
+        TypeError,
+        "'feedforward'",
+    ),
+    "LinearPolicy gain": (lambda: lj.LinearPolicy(CTL, jnp.zeros((3, 10))), ValueError, "'gain'"),
+    "LinearPolicy times": (lambda: lj.LinearPolicy(CTL, jnp.zeros((2, 10)), times=TS), ValueError, "'times'"),
+    # System: the message names the argument, or the function that misbehaves
+    "System n_shape<0": (lambda: lj.System(-1, LAG, CONN), ValueError, "'n_shape'"),
+    "System n_shape float": (lambda: lj.System(1.5, LAG, CONN), TypeError, "'n_shape'"),
+    "System lagrangian": (lambda: lj.System(1, 3.0, CONN), TypeError, "'lagrangian'"),
+    "System connection": (lambda: lj.System(1, LAG, "A"), TypeError, "'connection'"),
+    "System symmetry_basis": (
+        lambda: lj.System(1, LAG, CONN, symmetry_basis="e"),
+        TypeError,
+        "'symmetry_basis'",
+    ),
+    "System lagrangian vector": (lambda: lj.System(1, lambda r, u, xi: xi, CONN), ValueError, "lagrangian"),
+    "System lagrangian arity": (lambda: lj.System(1, lambda r, u: u @ u, CONN), TypeError, "lagrangian"),
+    "System connection shape": (
+        lambda: lj.System(1, LAG, lambda r: jnp.zeros((3, 2))),
+        ValueError,
+        "connection",
+    ),
+    "System symmetry shape": (
+        lambda: lj.System(1, LAG, CONN, lambda r: jnp.zeros((2, 1))),
+        ValueError,
+        "symmetry_basis",
+    ),
+    "System constraints shape": (
+        lambda: lj.System(1, LAG, CONN, None, lambda r: jnp.zeros((3, 3))),
+        ValueError,
+        "constraints",
+    ),
+    "System singularity": (
+        lambda: lj.System(1, LAG, CONN, singularity=lambda r: r),
+        ValueError,
+        "singularity",
+    ),
+    "System kinematic": (lambda: lj.System(1, LAG, CONN, kinematic=(True, False)), ValueError, "'kinematic'"),
+    "System shape_names": (
+        lambda: lj.System(1, LAG, CONN, shape_names=("a", "b")),
+        ValueError,
+        "'shape_names'",
+    ),
+    "sleigh m<0": (lambda: lj.chaplygin_sleigh(m=-1.0), ValueError, "'m'"),
+    "sleigh a str": (lambda: lj.chaplygin_sleigh(a="far"), TypeError, "'a'"),
+    "sleigh I inf": (lambda: lj.chaplygin_sleigh(I=INF), ValueError, "'I'"),
+    "racer d1=d2": (lambda: lj.roller_racer(d1=0.4, d2=0.4), ValueError, "'d1'"),
+    "racer k=0": (lambda: lj.roller_racer(k=0.0), ValueError, "'k'"),
+}
+
+
+@pytest.mark.parametrize("name", list(CONSTRUCTOR_RAISES))
+def test_constructors(name):
+    make, exc, match = CONSTRUCTOR_RAISES[name]
+    with pytest.raises(exc, match=match):
+        make()
+
+
+def test_system_without_full_view_under_dla():
+    """A System without ``constraints`` cannot run DLA: the error names the missing argument at
+    trace time (before compiling)."""
+    sleigh = lj.System(
+        0,
+        lambda r, u, xi: 0.5 * (xi @ xi),
+        lambda r: jnp.zeros((3, 0)),
+        lambda r: jnp.eye(3, 2),
+    )
+    with pytest.raises(ValueError, match="constraints"):
+        lj.simulate(sleigh, jnp.zeros(3), jnp.zeros(3), None, t_final=1.0, n_steps=N, integrator=lj.DLA())
+
+
+# ====================================================================================== reference
+def _reference(**kw):
+    args = (
+        dict(system=SB, q0=Z5, qdot0=Z5, controls=CTL, ts=TS, rtol=REF_TOL, atol=REF_TOL, max_steps=REF_MAX)
+        | kw
+    )
+    system, q0, qdot0, controls, ts = (args.pop(k) for k in ("system", "q0", "qdot0", "controls", "ts"))
+    return lj.reference(system, q0, qdot0, controls, ts, **args)
+
+
+REF_RAISES = {
+    "system": (dict(system="snakeboard"), TypeError, "'system'"),
+    "controls policy": (dict(controls=lj.Policy(lambda t, q, qd: q[:2], 2)), TypeError, "'controls'"),
+    "controls channels": (dict(controls=lj.Constant(jnp.zeros(3))), ValueError, "'controls'"),
+    "controls nan": (
+        dict(controls=lj.Sinusoids(at(AMP, (0, 0), NAN), FREQ, PHASE)),
+        ValueError,
+        "'controls'",
+    ),
+    "controls inf": (
+        dict(controls=lj.Sinusoids(AMP, at(FREQ, (1, 0), INF), PHASE)),
+        ValueError,
+        "'controls'.*frequency",
+    ),
+    "q0 shape": (dict(q0=jnp.zeros(4)), ValueError, "'q0'"),
+    "q0 string": (dict(q0="zeros"), TypeError, "'q0'"),
+    "q0 float16": (dict(q0=jnp.zeros(5, jnp.float16)), ValueError, "'q0'"),
+    "q0 nan": (dict(q0=at(Z5, 0, NAN)), ValueError, "'q0' must be finite"),
+    "theta inf": (dict(q0=at(Z5, 2, INF)), ValueError, "'q0' must be finite"),
+    "qdot0 nan": (dict(qdot0=at(Z5, 4, NAN)), ValueError, "'qdot0' must be finite"),
+    # consistent with simulate: rejected, not silently projected
+    "qdot0 sliding": (dict(qdot0=SLIDE), ValueError, "'qdot0' violates the constraints"),
+    "ts 2-d": (dict(ts=jnp.zeros((2, 2))), ValueError, "'ts'"),
+    "ts empty": (dict(ts=jnp.zeros(0)), ValueError, "'ts'"),
+    "ts decreasing": (dict(ts=[0.0, 2.0, 1.0]), ValueError, "'ts' must be non-decreasing"),
+    "ts before t0": (dict(ts=[0.5, 1.0], t0=1.0), ValueError, "'ts' must start"),
+    "ts nan": (dict(ts=[0.0, NAN, 5.0]), ValueError, "'ts' must be finite"),
+    "ts inf": (dict(ts=[0.0, INF]), ValueError, "'ts' must be finite"),
+    "ts string": (dict(ts="0 to 5"), TypeError, "'ts'"),
+    "ts complex": (dict(ts=jnp.array([0.0, 1.0 + 1j])), TypeError, "'ts'"),
+    "t0 nan": (dict(t0=NAN), ValueError, "'t0'"),
+    "t0 string": (dict(t0="0"), TypeError, "'t0'"),
+    "rtol 0": (dict(rtol=0.0), ValueError, "'rtol'"),
+    "rtol -1": (dict(rtol=-1.0), ValueError, "'rtol'"),
+    "rtol nan": (dict(rtol=NAN), ValueError, "'rtol'"),
+    "rtol inf": (dict(rtol=INF), ValueError, "'rtol'"),
+    "rtol string": (dict(rtol="tight"), TypeError, "'rtol'"),
+    "rtol bool": (dict(rtol=True), TypeError, "'rtol'"),
+    "atol 0": (dict(atol=0.0), ValueError, "'atol'"),
+    "atol -1e-9": (dict(atol=-1e-9), ValueError, "'atol'"),
+    "max_steps 0": (dict(max_steps=0), ValueError, "'max_steps'"),
+    "max_steps float": (dict(max_steps=2.5), TypeError, "'max_steps'"),
+    "solver": (dict(solver="dopri8"), TypeError, "'solver'"),
+}
+
+
+@pytest.mark.parametrize("name", list(REF_RAISES))
+def test_reference_arguments(name):
+    kw, exc, match = REF_RAISES[name]
+    with pytest.raises(exc, match=match):
+        _reference(**kw)
+
+
+def _ref_run(q0, qdot0, amp, ts):
+    sol = lj.reference(
+        SB, q0, qdot0, lj.Sinusoids(amp, FREQ, PHASE), ts, rtol=REF_TOL, atol=REF_TOL, max_steps=REF_MAX
+    )
+    return dict(
+        result=sol.result._value,
+        num_steps=sol.num_steps,
+        finite=jnp.all(jnp.isfinite(sol.q)) & jnp.all(jnp.isfinite(sol.qdot)),
+        all_nan=jnp.all(jnp.isnan(sol.q)),
+        q_final=sol.q[-1],
+    )
+
+
+REF_JIT = jax.jit(_ref_run)
+REF_VMAP = jax.jit(jax.vmap(_ref_run))
+REF_GOOD = dict(q0=Z5, qdot0=Z5, amp=AMP, ts=TS)
+
+#: traced inputs -> result. Every case is bounded: invalid inputs integrate nothing (num_steps 0),
+#: non-finite states and the singularity stop the solve at once, and max_steps caps the rest.
+REF_CASES = {
+    "valid": (REF_GOOD, R.successful),
+    "q0 nan": (REF_GOOD | dict(q0=at(Z5, 0, NAN)), R.invalid_input),
+    "theta inf": (REF_GOOD | dict(q0=at(Z5, 2, INF)), R.invalid_input),
+    "qdot0 nan": (REF_GOOD | dict(qdot0=at(Z5, 3, NAN)), R.invalid_input),
+    "qdot0 sliding": (REF_GOOD | dict(qdot0=SLIDE), R.invalid_input),
+    "ts nan": (REF_GOOD | dict(ts=jnp.array([0.0, NAN, 0.5])), R.invalid_input),
+    "ts inf": (REF_GOOD | dict(ts=jnp.array([0.0, 0.25, INF])), R.invalid_input),
+    "ts decreasing": (REF_GOOD | dict(ts=jnp.array([0.5, 0.25, 0.0])), R.invalid_input),
+    "ts before t0": (REF_GOOD | dict(ts=jnp.array([-1.0, 0.0, 0.5])), R.invalid_input),
+    "amplitude nan": (REF_GOOD | dict(amp=at(AMP, (1, 0), NAN)), R.invalid_input),
+    "singular": (REF_GOOD | dict(amp=SINGULAR_AMP, ts=TS_SINGULAR), R.singular),
+    "max_steps": (REF_GOOD | dict(ts=TS_LONG), R.max_steps_reached),
+}
+
+
+def _check_ref(out, expected):
+    assert code(out["result"]) == code(expected), int(out["result"])
+    assert int(out["num_steps"]) <= REF_MAX
+    if expected == R.successful:
+        assert bool(out["finite"])
+    elif expected == R.invalid_input:
+        assert bool(out["all_nan"]) and int(out["num_steps"]) == 0
+    else:  # the samples the solve did not reach are NaN, not inf
+        assert not bool(out["finite"]) and np.all(np.isnan(out["q_final"]))
+
+
+@pytest.mark.xdist_group("faults_reference_traced")
+@pytest.mark.parametrize("name", list(REF_CASES))
+def test_reference_jit(name):
+    inputs, expected = REF_CASES[name]
+    _check_ref(jax.tree_util.tree_map(np.asarray, REF_JIT(**inputs)), expected)
+
+
+@pytest.mark.xdist_group("faults_reference_traced")
+@pytest.mark.parametrize("name", [n for n in REF_CASES if n != "valid"])
+def test_reference_vmap_bad_member_costs_nothing(name):
+    """A batch [good, bad]: the bad member gets its result; the good one is the solo solution, and
+    an invalid member takes no step (so the batch does not pay for it)."""
+    inputs, expected = REF_CASES[name]
+    batch = jax.tree_util.tree_map(
+        lambda a, b: jnp.stack([jnp.asarray(a, float), jnp.asarray(b, float)]), REF_GOOD, inputs
+    )
+    out = jax.tree_util.tree_map(np.asarray, REF_VMAP(**batch))
+    first, second = (jax.tree_util.tree_map(lambda x: x[i], out) for i in (0, 1))
+    _check_ref(second, expected)
+    _check_ref(first, R.successful)
+    solo = jax.tree_util.tree_map(np.asarray, REF_JIT(**REF_GOOD))
+    np.testing.assert_allclose(first["q_final"], solo["q_final"], rtol=1e-12, atol=1e-14)
+
+
+@pytest.mark.xdist_group("faults_reference_eager")
+def test_reference_eager_runs():
+    """Eager solves: Python lists are accepted; the singularity is reported as by simulate (the
+    same maneuver gives RESULTS.singular in both); an exhausted budget fails fast and clearly."""
+    ok = _reference(q0=[0.0] * 5, qdot0=[0.0] * 5, ts=[0.0, 0.25, 0.5])
+    assert ok.result == R.successful and bool(jnp.all(jnp.isfinite(ok.q)))
+    singular_ctl = lj.Sinusoids(SINGULAR_AMP, FREQ, PHASE)
+    sol = _reference(controls=singular_ctl, ts=TS_SINGULAR)
+    traj = lj.simulate(SB, Z5, Z5, singular_ctl, t_final=TF, n_steps=N)
+    assert sol.result == R.singular and traj.result == R.singular
+    assert int(sol.num_steps) <= REF_MAX and bool(jnp.all(jnp.isnan(sol.q[-1])))
+    long = _reference(ts=TS_LONG)
+    assert long.result == R.max_steps_reached and int(long.num_steps) == REF_MAX
+    assert bool(jnp.all(jnp.isnan(long.q[-1])))
+    assert "max_steps" in R[long.result]
+
+
+# ============================================================== faults of valid inputs (4, 5, 6)
+def _loss(amp):
+    traj = lj.simulate(SB, Z5, Z5, lj.Sinusoids(amp, FREQ, PHASE), t_final=TF, n_steps=N)
+    return jnp.sum(traj.q[-1] ** 2)
+
+
+@pytest.mark.xdist_group("faults_simulate_eager")
+def test_gradient_through_a_failed_trajectory_is_nan():
+    """The issue's case 4: a loss through a run that hits cos(phi) = 0 gave (nan, zeros), and a
+    failed member of a batch-sum loss silently contributed nothing. Now its gradient is NaN,
+    while a good member's gradient stays finite."""
+    amps = jnp.stack([AMP, SINGULAR_AMP])
+    value, grad = jax.jit(jax.value_and_grad(lambda a: jnp.sum(jax.vmap(_loss)(a))))(amps)
+    assert np.isnan(float(value))
+    assert np.all(np.isfinite(np.asarray(grad[0]))) and np.any(np.asarray(grad[0]) != 0)
+    assert np.all(np.isnan(np.asarray(grad[1])))
+
+
+@pytest.mark.xdist_group("faults_divergence")
+def test_divergence_is_not_success():
+    """The issue's case 5: RK4 at h = 1e5 s ended at theta = -8e15 with result 0. Now it fails
+    with RESULTS.diverged (energy balance) and NaN; the criterion is the user's to set."""
+    cctl = lj.Sinusoids([[0.2], [0.3]], [[1.0], [0.7]], [[0.0], [0.0]])
+    traj = lj.simulate(CAR, Z5, Z5, cctl, t_final=1e6, n_steps=N, integrator=lj.RK4())
+    assert traj.result == R.diverged and int(traj.failure_index) < N
+    assert bool(jnp.all(jnp.isnan(traj.q[-1])))
+    assert "divergence" in R[traj.result]
+    loose = lj.simulate(CAR, Z5, Z5, cctl, t_final=1e6, n_steps=N, integrator=lj.RK4(), divergence=INF)
+    assert loose.result == R.successful and float(jnp.max(jnp.abs(loose.q[:, 2]))) > 1e12
+
+
+# ===================================================================================== control
+PARK = lc.parallel_park(n_steps=N)
+GAIT = lc.forward_gait(n_steps=N)
+
+
+def _make_task(**kw):
+    args = (
+        dict(
+            name="t",
+            system=CAR,
+            q0=np.zeros(5),
+            qdot0=np.zeros(5),
+            t_final=1.0,
+            n_steps=N,
+            parameterization=lc.SampledControls(1.0, N, np.ones(2)),
+            integrator=None,
+            objective=(lc.Effort(jnp.ones(2)),),
+        )
+        | kw
+    )
+    pos = [
+        args.pop(k)
+        for k in ("name", "system", "q0", "qdot0", "t_final", "n_steps", "parameterization", "integrator")
+    ]
+    return lc.make_task(*pos, **args)
+
+
+TASK_RAISES = {
+    "system": (lambda: _make_task(system="car"), TypeError, "'system'"),
+    "parameterization": (lambda: _make_task(parameterization="sampled"), TypeError, "'parameterization'"),
+    "integrator": (lambda: _make_task(integrator="rk4"), TypeError, "'integrator'"),
+    "objective": (lambda: _make_task(objective=(3.0,)), TypeError, "'objective'"),
+    "penalty": (lambda: _make_task(penalty={"rest": 1.0}), TypeError, "'penalty'"),
+    "q0 shape": (lambda: _make_task(q0=np.zeros(4)), ValueError, "'q0'"),
+    "q0 nan": (lambda: _make_task(q0=np.full(5, NAN)), ValueError, "'q0'"),
+    "qdot0 sliding": (lambda: _make_task(qdot0=np.asarray(SLIDE)), ValueError, "'qdot0'"),
+    "n_steps 0": (lambda: _make_task(n_steps=0), ValueError, "'n_steps'"),
+    "n_steps float": (lambda: _make_task(n_steps=2.5), TypeError, "'n_steps'"),
+    "t_final 0": (lambda: _make_task(t_final=0.0), ValueError, "'t_final'"),
+    "t_final nan": (lambda: _make_task(t_final=NAN), ValueError, "'t_final'"),
+    "t_final str": (lambda: _make_task(t_final="1"), TypeError, "'t_final'"),
+    "channels": (
+        lambda: _make_task(parameterization=lc.SampledControls(1.0, N, np.ones(3))),
+        ValueError,
+        "'parameterization'",
+    ),
+    "parameterization steps": (
+        lambda: _make_task(parameterization=lc.SampledControls(1.0, 2 * N, np.ones(2))),
+        ValueError,
+        "'parameterization'",
+    ),
+    "bounds empty": (lambda: _make_task(q_lower=np.ones(5), q_upper=np.zeros(5)), ValueError, "'q_lower'"),
+    "bounds shape": (lambda: _make_task(q_lower=np.zeros(3)), ValueError, "'q_lower'"),
+    "c_max 0": (lambda: _make_task(c_max=[0.0, 1.0]), ValueError, "'c_max'"),
+    "q0 outside": (lambda: _make_task(q_lower=np.full(5, 1.0), q_upper=np.full(5, 2.0)), ValueError, "'q0'"),
+    "goal shape": (lambda: _make_task(goal=[1.0, 2.0]), ValueError, "'goal'"),
+    "goal nan": (lambda: _make_task(goal=[1.0, NAN, 0.0]), ValueError, "'goal'"),
+    "goal outside": (
+        lambda: _make_task(goal=[5.0, 0.0, 0.0], q_lower=np.full(5, -1.0), q_upper=np.full(5, 1.0)),
+        ValueError,
+        "'goal'",
+    ),
+    "rest range": (lambda: _make_task(rest=(3,)), ValueError, "'rest'"),
+    "rest int": (lambda: _make_task(rest=0), TypeError, "'rest'"),
+    "objective_weight": (lambda: _make_task(objective_weight=-1.0), ValueError, "'objective_weight'"),
+    "checkpoint": (lambda: _make_task(checkpoint="often"), ValueError, "'checkpoint'"),
+    "init_amplitude": (lambda: _make_task(init_amplitude=0.0), ValueError, "'init_amplitude'"),
+    "parallel_park t_final": (lambda: lc.parallel_park(t_final=-1.0), ValueError, "'t_final'"),
+    "parallel_park n_steps": (lambda: lc.parallel_park(n_steps=0), ValueError, "'n_steps'"),
+    "u_turn width": (lambda: lc.u_turn(width=-1.0), ValueError, "'q_lower'"),
+    "reach goal": (lambda: lc.reach(goal=(1.0, 2.0, NAN)), ValueError, "'goal'"),
+    "with_options n_steps": (lambda: PARK.with_options(n_steps=0), ValueError, "'n_steps'"),
+    "with_options integrator": (lambda: PARK.with_options(integrator="rk4"), TypeError, "'integrator'"),
+    "with_options goal": (lambda: PARK.with_options(goal=[1.0, 2.0]), ValueError, "'goal'"),
+    "with_options system": (lambda: PARK.with_options(system=SB), TypeError, "'system'"),
+    # lc.solve: input checks (before compiling)
+    "solve task": (lambda: lc.solve("parallel_park"), TypeError, "'task'"),
+    "solve gait": (lambda: lc.solve(GAIT), ValueError, "SampledControls"),
+    "solve tol 0": (lambda: lc.solve(PARK, tol=0.0), ValueError, "'tol'"),
+    "solve tol nan": (lambda: lc.solve(PARK, tol=NAN), ValueError, "'tol'"),
+    "solve tol str": (lambda: lc.solve(PARK, tol="1e-8"), TypeError, "'tol'"),
+    "solve max_iterations 0": (lambda: lc.solve(PARK, max_iterations=0), ValueError, "'max_iterations'"),
+    "solve max_iterations float": (lambda: lc.solve(PARK, max_iterations=2.5), TypeError, "'max_iterations'"),
+    "solve params0 shape": (lambda: lc.solve(PARK, jnp.zeros((N, 2))), ValueError, "'params0'"),
+    "solve params0 nan": (lambda: lc.solve(PARK, jnp.full((N + 1, 2), NAN)), ValueError, "'params0'"),
+    "solve params0 str": (lambda: lc.solve(PARK, "zeros"), TypeError, "'params0'"),
+    # lc.optimize / lc.multistart: input checks (before compiling)
+    "optimize n_iterations 0": (
+        lambda: lc.optimize(PARK.value, PARK.init(), n_iterations=0),
+        ValueError,
+        "'n_iterations'",
+    ),
+    "optimize n_iterations float": (
+        lambda: lc.optimize(PARK.value, PARK.init(), n_iterations=2.5),
+        TypeError,
+        "'n_iterations'",
+    ),
+    "optimize chunk 0": (
+        lambda: lc.optimize(PARK.value, PARK.init(), n_iterations=4, chunk=0),
+        ValueError,
+        "'chunk'",
+    ),
+    "optimize tol<0": (
+        lambda: lc.optimize(PARK.value, PARK.init(), n_iterations=4, tol=-1.0),
+        ValueError,
+        "'tol'",
+    ),
+    "optimize tol nan": (
+        lambda: lc.optimize(PARK.value, PARK.init(), n_iterations=4, tol=NAN),
+        ValueError,
+        "'tol'",
+    ),
+    "optimize optimizer": (
+        lambda: lc.optimize(PARK.value, PARK.init(), n_iterations=4, optimizer="adam"),
+        TypeError,
+        "'optimizer'",
+    ),
+    "optimize loss_fn": (lambda: lc.optimize(3.0, PARK.init(), n_iterations=4), TypeError, "'loss_fn'"),
+    "optimize params0 empty": (lambda: lc.optimize(PARK.value, {}, n_iterations=4), ValueError, "'params0'"),
+    "optimize params0 int": (
+        lambda: lc.optimize(PARK.value, jnp.zeros(3, int), n_iterations=4),
+        TypeError,
+        "'params0'",
+    ),
+    "multistart n_iterations": (
+        lambda: lc.multistart(PARK.value, PARK.init()[None], n_iterations=0),
+        ValueError,
+        "'n_iterations'",
+    ),
+    "multistart tol": (
+        lambda: lc.multistart(PARK.value, PARK.init()[None], n_iterations=2, tol=-1.0),
+        ValueError,
+        "'tol'",
+    ),
+}
+
+
+@pytest.mark.parametrize("name", list(TASK_RAISES))
+def test_control_arguments(name):
+    make, exc, match = TASK_RAISES[name]
+    with pytest.raises(exc, match=match):
+        make()
+
+
+def test_optimize_warns_when_the_loss_is_never_finite():
+    """A weak case of the issue: an always-NaN loss returned the start with no warning."""
+    p0 = jnp.array([1.0, 2.0])
+    with pytest.warns(UserWarning, match="never finite"):
+        res = lc.optimize(lambda p: jnp.sum(p**2) * jnp.nan, p0, n_iterations=2)
+    assert not np.isfinite(float(res.loss))
+    np.testing.assert_array_equal(np.asarray(res.params), np.asarray(p0))
+
+
+# ============================================================== the compilation cache (weak case)
+def test_library_trims_the_compilation_cache_as_it_compiles(monkeypatch):
+    """Every new n_steps compiles a new program (hundreds of memory mappings); simulate counts
+    them and trims JAX's caches every CHECK_EVERY new programs, outside any trace."""
+    calls = []
+    monkeypatch.setattr(cc, "trim_compilation_cache", lambda threshold=0.5: calls.append(threshold) or False)
+    monkeypatch.setattr(cc, "_seen", set())
+    monkeypatch.setattr(cc, "_new_programs", 0)
+    # the rollout itself is stubbed out (it raises once the bookkeeping is done): this test
+    # checks the bookkeeping, not XLA
+
+    class Stop(Exception):
+        pass
+
+    def stub(*args, **kw):
+        raise Stop
+
+    monkeypatch.setattr(simulate_module, "_simulate", stub)
+
+    def run(n):
+        with pytest.raises(Stop):
+            _simulate(n_steps=n)
+
+    for n in range(1, 2 * cc.CHECK_EVERY + 1):
+        run(n)
+    assert len(calls) == 2
+    for n in range(1, 2 * cc.CHECK_EVERY + 1):  # the same programs again: nothing new
+        run(n)
+    assert len(calls) == 2
+    # inside a trace nothing is counted (clearing caches while tracing is unsafe)
+    jax.jit(lambda x: (cc.note_program(("traced", 0)), x)[1])(1.0)
+    assert ("traced", 0) not in cc._seen
+
+
+# ======================================================================================== scripts
+FAKE_JAX = "raise ImportError('the script imported jax before checking its flags')\n"
+
+
+@pytest.fixture(scope="module")
+def script_env(tmp_path_factory):
+    """An environment in which ``import jax`` fails, and an existing file to pass as a folder."""
+    root = tmp_path_factory.mktemp("scripts")
+    (root / "fakejax").mkdir()
+    (root / "fakejax" / "jax.py").write_text(FAKE_JAX)
+    existing = root / "a_file.csv"
+    existing.write_text("precious results\n")
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(root / "fakejax")
+    return env, str(existing)
+
+
+FILE = "<existing file>"
+SCRIPT_CASES = {
+    "sweep --out file": ("sweep.py", ["--out", FILE], "--out"),
+    "sweep --cpu-devices 0": ("sweep.py", ["--cpu-devices", "0"], "--cpu-devices"),
+    "sweep --cpu-devices two": ("sweep.py", ["--cpu-devices", "two"], "--cpu-devices"),
+    "sweep --runs 0": ("sweep.py", ["--runs", "0"], "--runs"),
+    "sweep --runs many": ("sweep.py", ["--runs", "many"], "--runs"),
+    "sweep --resolutions 100,x": ("sweep.py", ["--resolutions", "100,x"], "--resolutions"),
+    "sweep --resolutions 0": ("sweep.py", ["--resolutions", "0"], "--resolutions"),
+    "sweep --resolutions 100,,200": ("sweep.py", ["--resolutions", "100,,200"], "--resolutions"),
+    "sweep --duration 10q": ("sweep.py", ["--duration", "10q"], "--duration"),
+    "sweep --duration -5s": ("sweep.py", ["--duration=-5s"], "--duration"),
+    "sweep --duration inf": ("sweep.py", ["--duration", "inf"], "--duration"),
+    "sweep --reference-step 0": ("sweep.py", ["--reference-step", "0"], "--reference-step"),
+    "sweep --reference-step nan": ("sweep.py", ["--reference-step", "nan"], "--reference-step"),
+    "sweep --repeats 0": ("sweep.py", ["--repeats", "0"], "--repeats"),
+    "sweep --seed x": ("sweep.py", ["--seed", "x"], "--seed"),
+    "sweep --methods rk5": ("sweep.py", ["--methods", "rdp,rk5"], "--methods"),
+    "sweep --methods empty": ("sweep.py", ["--methods", ""], "--methods"),
+    "sweep --model bicycle": ("sweep.py", ["--model", "bicycle"], "--model"),
+    "sweep unknown flag": ("sweep.py", ["--bogus"], "--bogus"),
+    "optimize --iterations 0": (
+        "optimize.py",
+        ["--model", "car", "--task", "parallel_park", "--iterations", "0"],
+        "--iterations",
+    ),
+    "optimize --iterations x": (
+        "optimize.py",
+        ["--model", "car", "--task", "parallel_park", "--iterations", "x"],
+        "--iterations",
+    ),
+    "optimize --starts 0": (
+        "optimize.py",
+        ["--model", "snakeboard", "--task", "forward_gait", "--starts", "0"],
+        "--starts",
+    ),
+    "optimize --starts with solve": (
+        "optimize.py",
+        ["--model", "car", "--task", "u_turn", "--starts", "4"],
+        "--starts",
+    ),
+    "optimize --n-steps 0": (
+        "optimize.py",
+        ["--model", "car", "--task", "parallel_park", "--n-steps", "0"],
+        "--n-steps",
+    ),
+    "optimize --task of other model": ("optimize.py", ["--model", "car", "--task", "reach"], "--task"),
+    "optimize --model bicycle": ("optimize.py", ["--model", "bicycle", "--task", "reach"], "--model"),
+    "optimize --task missing": ("optimize.py", ["--model", "car"], "--task"),
+    "optimize --solver solve gait": (
+        "optimize.py",
+        ["--model", "snakeboard", "--task", "forward_gait", "--solver", "solve"],
+        "--solver",
+    ),
+    "optimize --integrator rk5": (
+        "optimize.py",
+        ["--model", "car", "--task", "u_turn", "--integrator", "rk5"],
+        "--integrator",
+    ),
+    "optimize --out file": ("optimize.py", ["--model", "car", "--task", "u_turn", "--out", FILE], "--out"),
+    "optimize --cache file": (
+        "optimize.py",
+        ["--model", "car", "--task", "u_turn", "--cache", FILE],
+        "--cache",
+    ),
+    "optimize --seed 1.5": ("optimize.py", ["--model", "car", "--task", "u_turn", "--seed", "1.5"], "--seed"),
+    "bench_control --repeats 0": ("bench_control.py", ["--repeats", "0"], "--repeats"),
+    "bench_control --repeats x": ("bench_control.py", ["--repeats", "x"], "--repeats"),
+    "bench_control --out file": ("bench_control.py", ["--out", FILE], "--out"),
+    "bench_control --integrator rk5": ("bench_control.py", ["--integrator", "rk5"], "--integrator"),
+}
+
+
+@pytest.mark.parametrize("name", list(SCRIPT_CASES))
+def test_script_rejects_bad_flags_before_any_work(name, script_env, tmp_path):
+    script, argv, flag = SCRIPT_CASES[name]
+    env, existing = script_env
+    argv = [existing if a == FILE else a for a in argv]
+    if "--out" not in argv:
+        argv = [*argv, "--out", str(tmp_path / "out")]  # never the working directory
+    out = subprocess.run(
+        [sys.executable, os.path.join(ROOT, "scripts", script), *argv],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert out.returncode == 2, out.stderr[-2000:]
+    assert flag in out.stderr, out.stderr[-2000:]
+    assert "Traceback" not in out.stderr
+    with open(existing) as f:  # an existing file passed as --out is left alone
+        assert f.read() == "precious results\n"
+
+
+def _literal(script: str, name: str):
+    """A module-level constant of a script, read without running it."""
+    with open(os.path.join(ROOT, "scripts", script)) as f:
+        tree = ast.parse(f.read())
+    for node in tree.body:
+        if isinstance(node, ast.Assign) and any(getattr(t, "id", None) == name for t in node.targets):
+            return ast.literal_eval(node.value)
+    raise KeyError(name)
+
+
+def test_script_name_lists_match_the_library():
+    """The scripts spell out the names they accept (to check flags before importing JAX)."""
+    assert _literal("sweep.py", "METHOD_NAMES") == tuple(study.METHODS)
+    assert _literal("sweep.py", "MODEL_NAMES") == tuple(study.MODELS)
+    tasks = _literal("optimize.py", "MODEL_TASKS")
+    assert {(m, t) for m, ts in tasks.items() for t in ts} == set(lc.TASKS)
+    periodic = {
+        t for (_, t), make in lc.TASKS.items() if not isinstance(make().parameterization, lc.SampledControls)
+    }
+    assert set(_literal("optimize.py", "PERIODIC_TASKS")) == periodic
+    assert _literal("bench_control.py", "TASK_NAMES") == ("parallel_park", "u_turn", "reach")
+
+
+# ============================================================================ the result messages
+def test_every_failure_result_says_what_to_do():
+    for item in (R.nonfinite, R.singular, R.not_converged, R.diverged, R.invalid_input, R.max_steps_reached):
+        message = R[item]
+        assert len(message) > 60 and any(w in message for w in ("Reduce", "reduce", "Raise", "call", "Keep"))
+    assert "controls" in R[R.invalid_input] and "qdot0" in R[R.invalid_input]
