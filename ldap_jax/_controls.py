@@ -13,9 +13,10 @@ from collections.abc import Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, Float
 
 from ._numerics import materialise, sincos
+from ._typing import ArrayLike
 from ._validation import converter_field
 
 __all__ = ["AbstractControls", "Sinusoids", "Sampled", "Constant"]

@@ -20,9 +20,10 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, Float
 
 from ._linalg import solve
+from ._typing import ArrayLike
 from ._validation import cast_floats, check_array
 from .integrators import RDP, AbstractIntegrator
 from .systems import AbstractSystem, Observation

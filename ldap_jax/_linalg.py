@@ -21,7 +21,9 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike
+from jaxtyping import Array
+
+from ._typing import ArrayLike
 
 __all__ = ["solve"]
 

@@ -15,9 +15,10 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike, Bool, Float, Int
+from jaxtyping import Array, Bool, Float, Int
 
 from ._linalg import solve
+from ._typing import ArrayLike
 
 __all__ = ["NewtonInfo", "newton"]
 

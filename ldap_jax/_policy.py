@@ -7,9 +7,10 @@ from collections.abc import Callable
 
 import equinox as eqx
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, Float
 
 from ._controls import AbstractControls
+from ._typing import ArrayLike
 
 __all__ = ["AbstractPolicy", "Policy", "LinearPolicy"]
 

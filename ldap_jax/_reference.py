@@ -10,11 +10,12 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float, Int
+from jaxtyping import Array, Float, Int
 
 from ._compilation_cache import note_program, program_key
 from ._controls import AbstractControls, Constant
 from ._results import RESULTS
+from ._typing import ArrayLike
 from ._validation import (
     ArrayOrSequence,
     cast_floats,

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import equinox as eqx
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike, Bool
+from jaxtyping import Array, Bool
+
+from ._typing import ArrayLike
 
 __all__ = ["RESULTS", "first_failure"]
 

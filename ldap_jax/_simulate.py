@@ -8,13 +8,14 @@ from typing import Any
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike, Bool, Float, Int
+from jaxtyping import Array, Bool, Float, Int
 
 from ._compilation_cache import note_program, program_key
 from ._controls import AbstractControls, Constant
 from ._policy import AbstractPolicy, LinearPolicy
 from ._results import RESULTS
 from ._rollout import check_checkpoint, check_save, rollout
+from ._typing import ArrayLike
 from ._validation import (
     ArrayOrSequence,
     cast_floats,

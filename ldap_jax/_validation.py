@@ -19,9 +19,10 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike
+from jaxtyping import Array
 
 from ._results import RESULTS
+from ._typing import ArrayLike
 
 __all__ = [
     "ArrayOrSequence",

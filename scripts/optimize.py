@@ -10,7 +10,7 @@ the default for them); the periodic gait task (``forward_gait``) and ``--solver 
 replayed on the high-accuracy reference ``lj.reference``. Writes ``OUT/optimize_<model>_<task>.json``
 (final_position_error [m], final_heading_error [rad] of the replay, the cost terms, iterations,
 wall_s, ...), ``OUT/optimize_<model>_<task>.png`` (path, controls, convergence) and
-``OUT/optimize_<model>_<task>.gif`` (an animation of the optimized maneuver on the reference).
+``OUT/<task>.gif`` (an animation of the optimized maneuver on the reference).
 """
 
 import argparse
@@ -300,21 +300,18 @@ def main(argv=None) -> int:
     )
     figure(task, params, rp, losses, out / f"{stem}.png", title)
     written = [out / f"{stem}.json", out / f"{stem}.png"]
-    try:
-        from ldap_jax.plotting import animate
-    except ImportError:  # pragma: no cover
-        animate = None
-    if animate is not None:
-        traj = lj.reference(task.system, task.q0, task.qdot0, task.controls(params), rp["t"])
-        animate(
-            traj.q,
-            task.system,
-            out / f"{stem}.gif",
-            t=rp["t"],
-            goal=None if task.goal is None else np.asarray(task.goal),
-            title=title,
-        )
-        written.append(out / f"{stem}.gif")
+    from ldap_jax.plotting import animate
+
+    traj = lj.reference(task.system, task.q0, task.qdot0, task.controls(params), rp["t"])
+    animate(
+        traj.q,
+        task.system,
+        out / f"{args.task}.gif",
+        t=rp["t"],
+        goal=None if task.goal is None else np.asarray(task.goal),
+        title=title,
+    )
+    written.append(out / f"{args.task}.gif")
     keys = ("final_position_error", "final_heading_error", "iterations", "wall_s")
     print(json.dumps({k: record[k] for k in keys}, indent=1))
     if "integrator_comparison" in record:

@@ -1,3 +1,6 @@
+import os
+import pathlib
+
 import jax
 import pytest
 
@@ -6,6 +9,12 @@ import ldap_jax as lj
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")
 jax.config.update("jax_numpy_rank_promotion", "raise")
+# Compiled programs are shared between the test workers and kept for the next run (tests compile
+# the same rollouts in several files); the cache is keyed by program, JAX version and device.
+lj.enable_compilation_cache(
+    os.environ.get("LDAP_JAX_TEST_CACHE") or pathlib.Path(__file__).parent.parent / ".cache" / "xla",
+    min_compile_seconds=1.0,
+)
 
 #: Tests that read the same per-worker results (tests/helpers.py's caches, a module's cached runs)
 #: run on the same xdist worker (``--dist loadgroup``): module file name -> group.

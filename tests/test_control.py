@@ -97,8 +97,9 @@ def test_solve_meets_the_constraints_on_the_reference(name, car_solutions):
     assert rp["final_position_error"] < 1e-6 and rp["final_heading_error"] < 1e-6, rp
     assert rp["final_speed_ref"] < 1e-6
     assert rp["max_bound_violation"] < 1e-8
-    if name == "u_turn":  # the lane constraint is active: the car backs up inside it
-        assert float(jnp.min(jnp.asarray(rp["q_ref"])[:, 1])) < -0.25
+    if name == "u_turn":  # a bound is active at the optimum (the lane |y| <= 1/2 or |sigma| <= 1)
+        q_ref = np.asarray(rp["q_ref"])
+        assert max(np.max(np.abs(q_ref[:, 1])) / 0.5, np.max(np.abs(q_ref[:, 4])) / 1.0) > 0.999
 
 
 def test_solve_cost_is_the_effort_and_far_below_the_guess(car_solutions):
@@ -307,16 +308,13 @@ def test_terms_compose_and_replay_reuses_them(small_park):
     task, p0 = small_park
     total, terms = task.loss(p0)
     assert float(total) == pytest.approx(sum(float(v) for v in terms.values()), rel=1e-13)
-    assert float(terms["effort"]) == pytest.approx(
-        1e-5
-        * lc.effort_cost(
-            jax.vmap(task.controls(p0))(task.rollout(p0).t), task.h, task.parameterization.scale
-        ),
-        rel=1e-12,
+    effort = lc.effort_cost(
+        jax.vmap(task.controls(p0))(task.rollout(p0).t), task.h, task.parameterization.scale
     )
+    assert float(terms["effort"]) == pytest.approx(1e-5 * float(effort), rel=1e-12)
     rp = lc.replay(task, p0)
     assert set(rp["terms_reference"]) == set(terms)
-    assert rp["terms_reference"]["effort"] == pytest.approx(float(terms["effort"]), rel=1e-12)
+    assert float(rp["terms_reference"]["effort"]) == pytest.approx(float(terms["effort"]), rel=1e-12)
 
 
 def test_bound_penalty():

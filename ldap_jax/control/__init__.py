@@ -7,6 +7,7 @@ from ._costs import AbstractTerm as AbstractTerm
 from ._costs import BoundPenalty as BoundPenalty
 from ._costs import Effort as Effort
 from ._costs import Forward as Forward
+from ._costs import Node as Node
 from ._costs import TerminalPose as TerminalPose
 from ._costs import TerminalRest as TerminalRest
 from ._costs import bound_penalty as bound_penalty

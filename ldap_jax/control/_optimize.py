@@ -40,11 +40,11 @@ class OptimizeResult(eqx.Module):
     """
 
     params: PyTree
-    loss: Float[Array, ""]
-    losses: Float[Array, " n"]
+    loss: Float[Array, "*batch"]
+    losses: Float[Array, "*batch n"]
     aux: PyTree
     iterations: int = eqx.field(static=True)
-    converged: Bool[Array, ""]
+    converged: Bool[Array, "*batch"]
 
 
 @functools.cache

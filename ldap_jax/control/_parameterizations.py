@@ -11,9 +11,10 @@ import abc
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
+from jaxtyping import Array, Float, PRNGKeyArray
 
 from .._controls import AbstractControls, Sampled, Sinusoids
+from .._typing import ArrayLike
 
 __all__ = ["AbstractParameterization", "SampledControls", "SinusoidGait"]
 

@@ -235,6 +235,8 @@ def _optimum_jvp(primals, tangents):
         task_ = eqx.combine(diff_, static)
         _, _, fns_, lo_, hi_ = _setup(task_, v[0])
 
+        lo_, hi_ = jnp.broadcast_to(lo_, chi.shape), jnp.broadcast_to(hi_, chi.shape)
+
         def lagrangian(chi_, v_):
             defects = jnp.concatenate(
                 [(fns_.first(v_[0]) - chi_[0])[None], jax.vmap(fns_.dynamics)(chi_[:-1], v_[1:]) - chi_[1:]]
@@ -253,6 +255,7 @@ def _optimum_jvp(primals, tangents):
 
     _, (r_chi, r_v, e, c) = jax.jvp(residuals, (diff,), (t_diff,))
     _, _, fns, lo, hi = _setup(task, v[0])
+    lo, hi = jnp.broadcast_to(lo, chi.shape), jnp.broadcast_to(hi, chi.shape)
     d = _derivatives(fns, st, jnp.asarray(True), False)
     sl = jnp.where(jnp.isfinite(lo), chi - lo, 1.0)
     su = jnp.where(jnp.isfinite(hi), hi - chi, 1.0)

@@ -48,6 +48,16 @@ def full_force(system, f: Array) -> Array:
     return force.at[3 + dyn].set(f[dyn])
 
 
+def step_inputs(system, alpha, c: Array) -> tuple[Array, Array, Array]:
+    """The step's inputs from the controls at its ends ``c = (c_k, c_{k+1})``: ``alpha`` (as an
+    array), the generalized force ``F_{k+alpha} = F((1 - alpha) f_k + alpha f_{k+1})`` and the
+    prescribed kinematic rates at the midpoint, ``(u_k + u_{k+1}) / 2``."""
+    a = jnp.asarray(alpha, c.dtype)
+    f0, uk0 = system.inputs(c[0])
+    f1, uk1 = system.inputs(c[1])
+    return a, full_force(system, (1 - a) * f0 + a * f1), 0.5 * (uk0 + uk1)
+
+
 def mass_matrix(system, q: Array, qdot: Array) -> Array:
     """``M(q) = d^2 L / d qdot^2`` by autodiff (singular in kinematic directions, e.g. the car's
     sigma, which carries no inertia)."""
@@ -176,12 +186,8 @@ class DLA(AbstractAlphaIntegrator):
     def step(self, system, h, state, c):
         q, p, v_prev = state
         dtype = q.dtype
-        a = jnp.asarray(self.alpha, dtype)
         d = system.n_config
-        f0, uk0 = system.inputs(c[0])
-        f1, uk1 = system.inputs(c[1])
-        force = full_force(system, (1 - a) * f0 + a * f1)  # F_{k+a}
-        u_kin = 0.5 * (uk0 + uk1)
+        a, force, u_kin = step_inputs(system, self.alpha, c)
         rows, rhs = constraint_rows(system, q, u_kin)
         n_rows = rows.shape[0]
 

@@ -14,7 +14,7 @@ from jaxtyping import Array
 from .._linalg import solve
 from ..systems._base import body_velocity
 from ._base import AbstractAlphaIntegrator, StepInfo, classify, finite
-from ._dla import constraint_rows, full_force, legendre_inverse, mass_matrix
+from ._dla import constraint_rows, legendre_inverse, mass_matrix, step_inputs
 
 __all__ = ["GNI", "GNIState"]
 
@@ -118,12 +118,8 @@ class GNI(AbstractAlphaIntegrator):
     def step(self, system, h, state, c):
         q, v_prev, p = state
         dtype = q.dtype
-        a = jnp.asarray(self.alpha, dtype)
         d = system.n_config
-        f0, uk0 = system.inputs(c[0])
-        f1, uk1 = system.inputs(c[1])
-        force = full_force(system, (1 - a) * f0 + a * f1)  # F_{k+a}
-        u_kin = 0.5 * (uk0 + uk1)
+        a, force, u_kin = step_inputs(system, self.alpha, c)
         mass = mass_matrix(system, q, v_prev)
         rows, rhs = constraint_rows(system, q, u_kin)
         n_rows = rows.shape[0]

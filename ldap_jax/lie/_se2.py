@@ -24,7 +24,9 @@ from typing import Any, ClassVar
 
 import equinox as eqx
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, Float
+
+from .._typing import ArrayLike
 
 __all__ = [
     "SE2",
