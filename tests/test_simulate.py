@@ -243,7 +243,11 @@ def test_failure_does_not_poison_gradients_of_other_batch_members():
     x, failed = jax.jit(jax.vmap(final_x))(amp, freq, phase)
     assert not bool(failed[0]) and bool(failed[1]) and np.isfinite(float(x[0])) and np.isnan(float(x[1]))
     g = jax.jit(jax.grad(lambda a: jax.vmap(final_x)(a, freq, phase)[0][0]))(amp)
-    assert np.all(np.isfinite(np.asarray(g))) and float(jnp.max(jnp.abs(g[0]))) > 0
+    # the good member's gradient is finite (here exactly 0: without steering the board cannot move,
+    # whatever the rotor does); the failed member's parameters get NaN (a gradient through a failed
+    # run is never a silent zero), even where the loss ignores them
+    assert np.all(np.isfinite(np.asarray(g[0])))
+    assert np.all(np.isnan(np.asarray(g[1])))
 
 
 def test_documented_sequence_inputs():
@@ -330,7 +334,7 @@ class TestBadInput:
             lj.RDP(solver="broyden")
         with pytest.raises(ValueError, match="'n_steps'"):
             self.run(n_steps=0)
-        with pytest.raises(ValueError, match="'n_steps'"):
+        with pytest.raises(TypeError, match="'n_steps'"):
             self.run(n_steps=2.5)
         with pytest.raises(ValueError, match="'t_final'"):
             self.run(t_final=0.0)

@@ -61,7 +61,7 @@ def test_batch_rollout_reports_failures_like_simulate():
     np.testing.assert_array_equal(codes, code(traj.result))
     assert bool(np.any(codes != 0))  # h = 3 s: some runs fail, and are reported
     for i in range(8):
-        assert (codes[i] == 0) == bool(traj.result[i] == lj.RESULTS.successful)
+        assert (codes[i] == 0) == (code(traj.result)[i] == code(lj.RESULTS.successful))
         np.testing.assert_array_equal(np.isnan(q_out[i]), np.isnan(np.asarray(traj.q[i])))
 
 
