@@ -174,21 +174,15 @@ F32_CASES = [
 ]
 
 
-# The car's kernel solves (23) for the wheel rate in ratio form, u = (b + (rho sigma_k / l) mu_1 +
-# rho mu_2) / (I + m rho^2 + K rho^2 sigma_k sigma_a / l^2): numerator and denominator round the same
-# coefficients differently, a relative bias ~eps per step that the momentum recursion accumulates
-# (measured in float32 over these 500 steps: the wheel rate drifts linearly, -3.9e-5 mean error,
-# and psi is 10x further from float64 than under Newton, whose residual is written in difference
-# form, K xi_0 - mu_1, m xi_1 - mu_2). One Newton correction on that residual after the closed-form
-# solve removes it (then 4.7e-5 vs Newton's 5.0e-5). A library bug in ldap_jax/systems/_car.py.
-CAR_F32_BUG = pytest.mark.xfail(
-    strict=True, reason="float32 drift of Car.kernel_step's ratio-form solve (ldap_jax/systems/_car.py)"
-)
+# The car's kernel solves (23) for the wheel rate in ratio form, then takes one Newton correction on
+# the residual in difference form (as the Newton step writes it). Without the correction the ratio
+# form's rounding biased the wheel rate by ~eps per step: in float32 psi ended 10x further from float64
+# than under Newton over these 500 steps (this test found it).
 
 
 @pytest.mark.parametrize(
     "name,alpha,retraction",
-    [pytest.param(*case, marks=CAR_F32_BUG) if case[0] == "car" else case for case in F32_CASES],
+    F32_CASES,
 )
 def test_kernel_equals_newton_float32(name, alpha, retraction):
     i = ALPHAS.index(alpha)
