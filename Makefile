@@ -29,7 +29,7 @@ demo: $(VENV)/.installed
 
 # The test suite (2 workers); pytest's "no tests collected" (exit 5) is a failure here.
 test: $(VENV)/.installed-dev
-	@$(PY) -m pytest -n 2 --durations=15 $(PYTEST_ARGS); rc=$$?; \
+	@$(PY) -m pytest -n 2 --dist loadgroup --durations=15 $(PYTEST_ARGS); rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests"; exit 1; fi; exit $$rc
 
 lint: $(VENV)/.installed-dev

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import warnings
 from typing import Any
 
 import diffrax
@@ -13,13 +12,13 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from ._compilation_cache import note_program, program_key
-from ._controls import AbstractControls, Constant
+from ._controls import AbstractControls
 from ._results import RESULTS
+from ._simulate import check_problem
 from ._typing import ArrayLike
 from ._validation import (
     ArrayOrSequence,
     cast_floats,
-    check_array,
     check_positive_int,
     check_positive_number,
     check_scalar,
@@ -122,25 +121,7 @@ def reference(
         TypeError, ValueError: bad inputs (the message names the argument); on traced values
             the result is ``invalid_input`` instead.
     """
-    if not isinstance(system, AbstractSystem):
-        raise TypeError(
-            f"'system' must be an ldap_jax system (e.g. lj.Car, lj.Snakeboard), got {type(system)}"
-        )
-    if controls is None:
-        controls = Constant(jnp.zeros(system.n_controls, jnp.result_type(float)))
-    if not isinstance(controls, AbstractControls):
-        raise TypeError(
-            "'controls' must be ldap_jax open-loop controls (e.g. lj.Sinusoids) or None, "
-            f"got {type(controls)}"
-        )
-    if controls.n_channels != system.n_controls:
-        raise ValueError(
-            f"'controls' has {controls.n_channels} channels, "
-            f"{type(system).__name__} takes {system.n_controls}"
-        )
-    d = system.n_config
-    q0 = check_array("q0", q0, (d,), f"for {type(system).__name__}")
-    qdot0 = check_array("qdot0", qdot0, (d,), f"for {type(system).__name__}")
+    controls, q0, qdot0 = check_problem(system, controls, q0, qdot0, policies=False, caller="reference")
     t0 = check_scalar("t0", t0)
     ts = _check_ts(ts, t0)
     rtol = check_positive_number("rtol", rtol)
@@ -150,13 +131,6 @@ def reference(
         solver = diffrax.Dopri8()
     if not isinstance(solver, diffrax.AbstractSolver):
         raise TypeError(f"'solver' must be a diffrax solver (e.g. diffrax.Dopri8()) or None, got {solver!r}")
-    dtype = jnp.result_type(q0, qdot0)
-    if dtype == jnp.float32 and not jax.config.jax_enable_x64:
-        warnings.warn(
-            "ldap_jax.reference runs in float32 because jax_enable_x64 is off: its tolerances cannot be met; "
-            'enable float64 (jax.config.update("jax_enable_x64", True))',
-            stacklevel=2,
-        )
     raise_if_concrete(system, None, q0, qdot0, controls, t0, None, check_constraints)
     note_program(
         (

@@ -82,6 +82,43 @@ class Trajectory(eqx.Module):
         return self.energy - self.energy[..., :1] - self.work
 
 
+def check_problem(
+    system: Any, controls: Any, q0: Any, qdot0: Any, *, policies: bool, caller: str
+) -> tuple[Any, Array, Array]:
+    """Validate what :func:`simulate` and :func:`ldap_jax.reference` share: the system, the
+    controls (``None``: zero inputs; a policy only when ``policies``) and their channel count, the
+    initial configuration and velocity; warns (naming ``caller``) when float32 is forced because
+    float64 is off. Returns ``(controls, q0, qdot0)``."""
+    if not isinstance(system, AbstractSystem):
+        raise TypeError(
+            f"'system' must be an ldap_jax system (e.g. lj.Car, lj.Snakeboard), got {type(system)}"
+        )
+    if controls is None:
+        controls = Constant(jnp.zeros(system.n_controls, jnp.result_type(float)))
+    kinds = (AbstractControls, AbstractPolicy) if policies else (AbstractControls,)
+    if not isinstance(controls, kinds):
+        raise TypeError(
+            "'controls' must be ldap_jax controls (e.g. lj.Sinusoids)"
+            + (", a policy (lj.Policy)" if policies else " (open loop)")
+            + f" or None, got {type(controls)}"
+        )
+    if controls.n_channels != system.n_controls:
+        raise ValueError(
+            f"'controls' has {controls.n_channels} channels but {type(system).__name__} takes "
+            f"{system.n_controls} {system.control_names}"
+        )
+    d = system.n_config
+    q0 = check_array("q0", q0, (d,), f"for {type(system).__name__}")
+    qdot0 = check_array("qdot0", qdot0, (d,), f"for {type(system).__name__}")
+    if jnp.result_type(q0, qdot0) == jnp.float32 and not jax.config.jax_enable_x64:
+        warnings.warn(
+            f"ldap_jax.{caller} runs in float32 because jax_enable_x64 is off; enable float64 "
+            '(jax.config.update("jax_enable_x64", True)) for its accuracy',
+            stacklevel=3,
+        )
+    return controls, q0, qdot0
+
+
 def simulate(
     system: AbstractSystem,
     q0: ArrayOrSequence,
@@ -160,29 +197,11 @@ def simulate(
         ((501, 5), False)
     """
     integrator = RDP() if integrator is None else integrator
-    if not isinstance(system, AbstractSystem):
-        raise TypeError(
-            f"'system' must be an ldap_jax system (e.g. lj.Car, lj.Snakeboard), got {type(system)}"
-        )
     if not isinstance(integrator, AbstractIntegrator):
         raise TypeError(
             f"'integrator' must be an ldap_jax integrator (e.g. lj.RDP()), got {type(integrator)}"
         )
-    if controls is None:
-        controls = Constant(jnp.zeros(system.n_controls, jnp.result_type(float)))
-    if not isinstance(controls, (AbstractControls, AbstractPolicy)):
-        raise TypeError(
-            f"'controls' must be ldap_jax controls (e.g. lj.Sinusoids), a policy (lj.Policy) or None, "
-            f"got {type(controls)}"
-        )
-    if controls.n_channels != system.n_controls:
-        raise ValueError(
-            f"'controls' has {controls.n_channels} channels but {type(system).__name__} takes "
-            f"{system.n_controls} {system.control_names}"
-        )
-    d = system.n_config
-    q0 = check_array("q0", q0, (d,), f"for {type(system).__name__}")
-    qdot0 = check_array("qdot0", qdot0, (d,), f"for {type(system).__name__}")
+    controls, q0, qdot0 = check_problem(system, controls, q0, qdot0, policies=True, caller="simulate")
     if isinstance(controls, AbstractPolicy):
         _check_policy(controls, q0, qdot0)
     n_steps = check_positive_int("n_steps", n_steps)
@@ -191,13 +210,6 @@ def simulate(
     checkpoint = check_checkpoint(checkpoint)
     if divergence is not None:
         divergence = check_positive_number("divergence", divergence, allow_inf=True)
-    dtype = jnp.result_type(q0, qdot0)
-    if dtype == jnp.float32 and not jax.config.jax_enable_x64:
-        warnings.warn(
-            "ldap_jax.simulate runs in float32 because jax_enable_x64 is off; enable it "
-            '(jax.config.update("jax_enable_x64", True)) for float64 accuracy',
-            stacklevel=2,
-        )
     raise_if_concrete(system, integrator, q0, qdot0, controls, t0, t_final, check_constraints)
     settings = dict(
         n_steps=n_steps,

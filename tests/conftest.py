@@ -11,10 +11,15 @@ jax.config.update("jax_numpy_dtype_promotion", "strict")
 jax.config.update("jax_numpy_rank_promotion", "raise")
 # Compiled programs are shared between the test workers and kept for the next run (tests compile
 # the same rollouts in several files); the cache is keyed by program, JAX version and device.
-lj.enable_compilation_cache(
+_CACHE = lj.enable_compilation_cache(
     os.environ.get("LDAP_JAX_TEST_CACHE") or pathlib.Path(__file__).parent.parent / ".cache" / "xla",
     min_compile_seconds=1.0,
 )
+# ... and with the processes the tests start (notebook kernels, scripts): the README's, notebook 03's
+# and test_control's interior-point solve of parallel_park are one program, compiled once.
+os.environ["JAX_COMPILATION_CACHE_DIR"] = _CACHE
+os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "1.0"
+os.environ["JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES"] = "0"
 
 #: Tests that read the same per-worker results (tests/helpers.py's caches, a module's cached runs)
 #: run on the same xdist worker (``--dist loadgroup``): module file name -> group.

@@ -366,3 +366,17 @@ class TestBadInput:
         ok = jax.vmap(lambda qd: self.run(qdot0=qd))(jnp.stack([jnp.zeros(5), bad]))
         np.testing.assert_array_equal(code(ok.result), [0, lj.RESULTS.invalid_input._value])
         assert bool(jnp.all(jnp.isfinite(ok.q[0])))
+
+
+def test_float32_without_x64_is_warned_by_name():
+    """With float64 off, simulate and reference say they run in float32 (checked before any
+    other input: the runs below stop at a bad setting, nothing compiles)."""
+    car = lj.Car()
+    z = jnp.zeros(5, jnp.float32)
+    with jax.enable_x64(False):
+        with pytest.warns(UserWarning, match="ldap_jax.simulate runs in float32"):
+            with pytest.raises(ValueError, match="'n_steps'"):
+                lj.simulate(car, z, z, None, t_final=1.0, n_steps=0)
+        with pytest.warns(UserWarning, match="ldap_jax.reference runs in float32"):
+            with pytest.raises(ValueError, match="'rtol'"):
+                lj.reference(car, z, z, None, jnp.array([0.0, 1.0], jnp.float32), rtol=-1.0)

@@ -66,8 +66,9 @@ def test_batch_rollout_reports_failures_like_simulate():
 
 
 def test_tiny_study(tmp_path):
+    # one model (the study's code is the same for both; the snakeboard's maneuvers are checked above)
     config = study.StudyConfig(
-        models=("snakeboard", "car"),
+        models=("car",),
         durations=(2.0,),
         methods=("rdp", "gni", "dla", "rk2"),
         resolutions=(20, 40),
@@ -77,7 +78,7 @@ def test_tiny_study(tmp_path):
     )
     assert config.output_nodes == 20
     rows = study.run_study(config)
-    assert len(rows) == 2 * 4 * 2
+    assert len(rows) == 4 * 2
     path = tmp_path / "sweep.csv"
     study.write_csv(rows, path)
     back = study.read_csv(path)
@@ -96,7 +97,7 @@ def test_tiny_study(tmp_path):
     assert {r["ratio"] for r in ratios} == {"rdp/rk2", "gni/rdp", "dla/rdp"}
     assert all(np.isfinite(r["equal_n"]) for r in ratios)
     figs = study.plot_study(back, tmp_path)
-    assert len(figs) == 2 and all(os.path.getsize(f) > 0 for f in figs)
+    assert len(figs) == 1 and all(os.path.getsize(f) > 0 for f in figs)
     assert "| rdp |" in study.format_table(back)
     # an empty study still writes the header
     study.write_csv([], tmp_path / "empty.csv")

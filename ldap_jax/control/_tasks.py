@@ -371,6 +371,34 @@ def make_task(
     )
 
 
+def _car_to_rest(
+    name, car, q0, goal, t_final, n_steps, integrator, penalty, y_bound, max_steer, checkpoint, **kw
+):
+    """The car tasks: from rest at ``q0`` to rest at the pose ``goal``, least effort (wheel torque
+    scaled by the wheel's inertia, steering rate by 0.5 1/s), ``|y| <= y_bound`` and
+    ``|sigma| <= max_steer`` at the nodes."""
+    scale = [float(car.I + car.m * car.rho**2), 0.5]
+    return make_task(
+        name,
+        car,
+        q0,
+        np.zeros(5),
+        t_final,
+        n_steps,
+        SampledControls(t_final, n_steps, np.asarray(scale, float)),
+        integrator,
+        objective=(Effort(jnp.asarray(scale)),),
+        objective_weight=1e-5,
+        goal=goal,
+        rest=(0,),
+        penalty=penalty,
+        q_lower=[-_INF, -y_bound, -_INF, -_INF, -max_steer],
+        q_upper=[_INF, y_bound, _INF, _INF, max_steer],
+        checkpoint=checkpoint,
+        **kw,
+    )
+
+
 def parallel_park(
     system: Car | None = None,
     *,
@@ -385,25 +413,11 @@ def parallel_park(
     in N m, steering rate in 1/s); ``|sigma| <= max_steer`` (``sigma = tan`` of the steering angle)."""
     car = system if system is not None else Car()
     l = float(car.l)
-    scale = [float(car.I + car.m * car.rho**2), 0.5]
-    return make_task(
-        "parallel_park",
-        car,
-        np.zeros(5),
-        np.zeros(5),
-        t_final,
-        n_steps,
-        SampledControls(t_final, n_steps, np.asarray(scale, float)),
-        integrator,
-        objective=(Effort(jnp.asarray(scale)),),
-        objective_weight=1e-5,
-        goal=[0.0, 0.5 * l, 0.0],
-        rest=(0,),
-        penalty=Penalty(heading=100.0, position=100.0 / l**2, rest=10.0, bounds=100.0),
-        q_lower=[-_INF, -_INF, -_INF, -_INF, -max_steer],
-        q_upper=[_INF, _INF, _INF, _INF, max_steer],
-        checkpoint=checkpoint,
-    )
+    penalty = Penalty(heading=100.0, position=100.0 / l**2, rest=10.0, bounds=100.0)
+    return _car_to_rest(
+        "parallel_park", car, np.zeros(5), [0.0, 0.5 * l, 0.0], t_final, n_steps, integrator, penalty,
+        _INF, max_steer, checkpoint,
+    )  # fmt: skip
 
 
 def u_turn(
@@ -421,26 +435,11 @@ def u_turn(
     (minimum turning radius ``l / max_steer``: with the defaults a plain U-turn needs 1 m, so the
     car must back up), minimising the effort."""
     car = system if system is not None else Car()
-    scale = [float(car.I + car.m * car.rho**2), 0.5]
-    return make_task(
-        "u_turn",
-        car,
-        [0.0, -width / 4, 0.0, 0.0, 0.0],
-        np.zeros(5),
-        t_final,
-        n_steps,
-        SampledControls(t_final, n_steps, np.asarray(scale, float)),
-        integrator,
-        objective=(Effort(jnp.asarray(scale)),),
-        objective_weight=1e-5,
-        goal=[0.0, width / 4, np.pi],
-        rest=(0,),
-        penalty=Penalty(heading=100.0, position=100.0, rest=10.0, bounds=1000.0),
-        init_amplitude=0.1,
-        q_lower=[-_INF, -width / 2, -_INF, -_INF, -max_steer],
-        q_upper=[_INF, width / 2, _INF, _INF, max_steer],
-        checkpoint=checkpoint,
-    )
+    penalty = Penalty(heading=100.0, position=100.0, rest=10.0, bounds=1000.0)
+    return _car_to_rest(
+        "u_turn", car, [0.0, -width / 4, 0.0, 0.0, 0.0], [0.0, width / 4, np.pi], t_final, n_steps,
+        integrator, penalty, width / 2, max_steer, checkpoint, init_amplitude=0.1,
+    )  # fmt: skip
 
 
 def forward_gait(

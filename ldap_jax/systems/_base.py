@@ -78,6 +78,19 @@ def positive_checks(obj, *names: str) -> tuple[tuple[str, Array], ...]:
     )
 
 
+def random_draws(key: Array, n: int, dtype) -> tuple[Array, Any, Any]:
+    """``n`` keys split from ``key`` and the two draws the maneuver samplers use:
+    ``uniform(k, shape, lo, hi)`` and ``sign(k, shape)`` (+-1 with equal odds), in ``dtype``."""
+
+    def uniform(k, shape, lo, hi):
+        return jax.random.uniform(k, shape, dtype, lo, hi)
+
+    def sign(k, shape):
+        return jnp.where(jax.random.bernoulli(k, 0.5, shape), 1.0, -1.0).astype(dtype)
+
+    return jax.random.split(key, n), uniform, sign
+
+
 def body_velocity(q: Float[Array, " d"], qdot: Float[Array, " d"]) -> Float[Array, 3]:
     """``xi = g^-1 gdot = (thetadot, c xdot + s ydot, -s xdot + c ydot)`` for ``q = (x, y, theta, r)``."""
     c, s = jnp.cos(q[2]), jnp.sin(q[2])

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 from jaxtyping import Array
 
 from ..lie._scalar import Pose, body_to_qdot, dtau1_transpose, pose_from_xy_theta, pose_retract
-from ._base import physical_parameter, positive_checks
+from ._base import physical_parameter, positive_checks, random_draws
 from ._closed_form import AbstractClosedFormSystem
 
 __all__ = ["Car", "CarKernelState"]
@@ -118,10 +118,8 @@ class Car(AbstractClosedFormSystem):
         """
         from .._controls import Sinusoids
 
-        ks = jax.random.split(key, 10)
         dtype = self.m.dtype
-        u = lambda k, shape, lo, hi: jax.random.uniform(k, shape, dtype, lo, hi)  # noqa: E731
-        sign = lambda k, shape: jnp.where(jax.random.bernoulli(k, 0.5, shape), 1.0, -1.0).astype(dtype)  # noqa: E731
+        ks, u, sign = random_draws(key, 10, dtype)
         a_f = (self.I + self.m * self.rho**2) * u(ks[0], (n_terms,), 0.5, 3.0) * sign(ks[1], (n_terms,))
         w_f = u(ks[2], (n_terms,), 0.3, 2.0)
         p_f = u(ks[3], (n_terms,), 0.0, 2 * jnp.pi)

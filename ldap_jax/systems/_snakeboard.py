@@ -5,13 +5,12 @@ from __future__ import annotations
 from typing import ClassVar, NamedTuple
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
 from .._numerics import materialise, saved, sincos
 from ..lie._scalar import Pose, body_to_qdot, dtau1_transpose, pose_from_xy_theta, pose_retract
-from ._base import physical_parameter, positive_checks
+from ._base import physical_parameter, positive_checks, random_draws
 from ._closed_form import AbstractClosedFormSystem
 
 __all__ = ["Snakeboard", "SnakeboardKernelState"]
@@ -163,10 +162,8 @@ class Snakeboard(AbstractClosedFormSystem):
         """
         from .._controls import Sinusoids
 
-        ks = jax.random.split(key, 12)
         dtype = self.m.dtype
-        u = lambda k, shape, lo, hi: jax.random.uniform(k, shape, dtype, lo, hi)  # noqa: E731
-        sign = lambda k, shape: jnp.where(jax.random.bernoulli(k, 0.5, shape), 1.0, -1.0).astype(dtype)  # noqa: E731
+        ks, u, sign = random_draws(key, 12, dtype)
         a_f = self.I * u(ks[0], (n_terms,), 0.5, 3.0) * sign(ks[1], (n_terms,))
         w_f = u(ks[2], (n_terms,), 0.5, 3.0)
         p_f = u(ks[3], (n_terms,), 0.0, 2 * jnp.pi)
