@@ -415,12 +415,11 @@ def ipm_solve(fns: OCPFunctions, chi: Array, v: Array, lo: Array, hi: Array, opt
         return (st.result == SOLVER_RESULTS.max_iterations) & (st.iteration < options.max_iterations)
 
     sr1 = options.hessian == "sr1"
-    no_curvature = sr1 or options.hessian == "gauss_newton"
 
     def body(st: IPMState):
         theta, _ = theta_phi(st.chi, st.v, st.mu)
         exact = theta <= options.exact_hessian_tol
-        d = _derivatives(fns, st, exact, no_curvature)
+        d = _derivatives(fns, st, exact, sr1)
         if sr1:
             # learn the constraints' curvature from the change of their Jacobians along the step
             chi_o, v_o, Z_o, C_o = st.previous
