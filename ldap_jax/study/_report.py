@@ -94,7 +94,7 @@ def plot_study(
         for ax in (ax_e, ax_t, ax_f):
             ax.set_xticks(ns_all, [str(n) for n in ns_all])
             ax.minorticks_off()
-            ax.set_xlabel("resolution N (total steps)")
+            ax.set_xlabel("resolution N (steps; macro steps for rdp4, rdp6)")
             ax.grid(True, which="both", alpha=0.3)
         label = {"final_error_median": "median final", "final_error_mean": "mean final"}.get(error, error)
         ax_e.set_ylabel(f"position error, {label} [m]")
