@@ -26,8 +26,11 @@ REFERENCE_STYLE: dict[str, Any] = {"color": "0.2", "lw": 3.0, "alpha": 0.3, "ls"
 
 # (pattern on the lower-cased label, style); the first match wins. Colours follow
 # ldap_jax.study's figures (RDP blue/purple/pink, RK orange/red, DLA brown, GNI green).
+_REFERENCE_PATTERN = r"reference|diffrax|exact|ground truth"
 _STYLES: tuple[tuple[str, dict[str, Any]], ...] = (
-    (r"reference|diffrax|exact|ground truth", REFERENCE_STYLE),
+    (r"tsit5", {"color": "0.55", "ls": "-", "lw": 2.0, "marker": "x"}),  # diffrax peers, told apart
+    (r"dopri", {"color": "0.25", "ls": "--", "lw": 2.0, "marker": "+"}),
+    (_REFERENCE_PATTERN, REFERENCE_STYLE),
     (r"(rdp|order)[\s_=\-:(,]*6(?!\d)", {"color": "tab:pink", "ls": "-", "marker": "D"}),
     (r"(rdp|order)[\s_=\-:(,]*4(?!\d)", {"color": "tab:purple", "ls": "-", "marker": "s"}),
     (r"cayley", {"color": "tab:cyan", "ls": "-.", "marker": "v"}),
@@ -59,6 +62,8 @@ def style_for(label: str, index: int = 0, *, markers: bool = False) -> dict[str,
             break
     else:
         out = {"color": _CYCLE[index % len(_CYCLE)], "ls": "-", "marker": "o"}
+    if "cayley" in low and pattern != "cayley":  # e.g. "RDP6 cayley": RDP6's colour, dash-dot
+        out.update(ls="-.", marker="v")
     if not markers:
         out.pop("marker", None)
     return out
@@ -66,7 +71,7 @@ def style_for(label: str, index: int = 0, *, markers: bool = False) -> dict[str,
 
 def is_reference(label: str) -> bool:
     """True for labels that name a reference solution."""
-    return re.search(_STYLES[0][0], label.lower()) is not None
+    return re.search(_REFERENCE_PATTERN, label.lower()) is not None
 
 
 def as_tq(obj: Any, t: Any = None) -> tuple[np.ndarray | None, np.ndarray]:
