@@ -372,7 +372,7 @@ def make_task(
 
 
 def _car_to_rest(
-    name, car, q0, goal, t_final, n_steps, integrator, penalty, y_bound, max_steer, checkpoint, **kw
+    name, car, *, q0, goal, y_bound, penalty, t_final, n_steps, integrator, max_steer, checkpoint, **kw
 ):
     """The car tasks: from rest at ``q0`` to rest at the pose ``goal``, least effort (wheel torque
     scaled by the wheel's inertia, steering rate by 0.5 1/s), ``|y| <= y_bound`` and
@@ -413,11 +413,19 @@ def parallel_park(
     in N m, steering rate in 1/s); ``|sigma| <= max_steer`` (``sigma = tan`` of the steering angle)."""
     car = system if system is not None else Car()
     l = float(car.l)
-    penalty = Penalty(heading=100.0, position=100.0 / l**2, rest=10.0, bounds=100.0)
     return _car_to_rest(
-        "parallel_park", car, np.zeros(5), [0.0, 0.5 * l, 0.0], t_final, n_steps, integrator, penalty,
-        _INF, max_steer, checkpoint,
-    )  # fmt: skip
+        "parallel_park",
+        car,
+        q0=np.zeros(5),
+        goal=[0.0, 0.5 * l, 0.0],
+        y_bound=_INF,
+        penalty=Penalty(heading=100.0, position=100.0 / l**2, rest=10.0, bounds=100.0),
+        t_final=t_final,
+        n_steps=n_steps,
+        integrator=integrator,
+        max_steer=max_steer,
+        checkpoint=checkpoint,
+    )
 
 
 def u_turn(
@@ -435,11 +443,20 @@ def u_turn(
     (minimum turning radius ``l / max_steer``: with the defaults a plain U-turn needs 1 m, so the
     car must back up), minimising the effort."""
     car = system if system is not None else Car()
-    penalty = Penalty(heading=100.0, position=100.0, rest=10.0, bounds=1000.0)
     return _car_to_rest(
-        "u_turn", car, [0.0, -width / 4, 0.0, 0.0, 0.0], [0.0, width / 4, np.pi], t_final, n_steps,
-        integrator, penalty, width / 2, max_steer, checkpoint, init_amplitude=0.1,
-    )  # fmt: skip
+        "u_turn",
+        car,
+        q0=[0.0, -width / 4, 0.0, 0.0, 0.0],
+        goal=[0.0, width / 4, np.pi],
+        y_bound=width / 2,
+        penalty=Penalty(heading=100.0, position=100.0, rest=10.0, bounds=1000.0),
+        t_final=t_final,
+        n_steps=n_steps,
+        integrator=integrator,
+        max_steer=max_steer,
+        checkpoint=checkpoint,
+        init_amplitude=0.1,
+    )
 
 
 def forward_gait(

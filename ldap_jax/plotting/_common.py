@@ -56,13 +56,12 @@ def style_for(label: str, index: int = 0, *, markers: bool = False) -> dict[str,
         Keyword arguments for ``Axes.plot``.
     """
     low = label.lower()
-    for pattern, style in _STYLES:
-        if re.search(pattern, low):
-            out = dict(style)
-            break
-    else:
+    matched = next((pattern for pattern, _ in _STYLES if re.search(pattern, low)), None)
+    if matched is None:
         out = {"color": _CYCLE[index % len(_CYCLE)], "ls": "-", "marker": "o"}
-    if "cayley" in low and pattern != "cayley":  # e.g. "RDP6 cayley": RDP6's colour, dash-dot
+    else:
+        out = dict(dict(_STYLES)[matched])
+    if "cayley" in low and matched != "cayley":  # e.g. "RDP6 cayley": RDP6's colour, dash-dot
         out.update(ls="-.", marker="v")
     if not markers:
         out.pop("marker", None)

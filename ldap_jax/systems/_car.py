@@ -147,7 +147,12 @@ class Car(AbstractClosedFormSystem):
         + rho mu_2``. At ``sigma_a = sigma_k`` and ``h = 0`` it inverts the reduced Legendre transform."""
         rho, l = self.rho, self.l
         rhs = b_psi + (rho * sigma_k / l) * mu[0] + rho * mu[1]
-        return rhs / (self.I + self.m * rho**2 + self.K * rho**2 * sigma_k * sigma_a / l**2)
+        return rhs / self._wheel_inertia(sigma_k, sigma_a)
+
+    def _wheel_inertia(self, sigma_k, sigma_a):
+        """``I + rho^2 m + K rho^2 sigma_k sigma_a / l^2``: the coefficient of ``u^psi`` in (23) (the
+        denominator of :meth:`_solve`, the slope of the residual in ``u^psi``)."""
+        return self.I + self.m * self.rho**2 + self.K * self.rho**2 * sigma_k * sigma_a / self.l**2
 
     def kernel_init(self, q, pu, mu):
         return CarKernelState(
@@ -189,8 +194,7 @@ class Car(AbstractClosedFormSystem):
         # correction on the difference-form residual (linear in u^psi, slope = the denominator)
         # removes it.
         u_psi = self._solve(b, state.mu, state.sigma, sigma_a)
-        slope = inertia + m * rho**2 + kk * rho**2 * state.sigma * sigma_a / l**2
-        u_psi = u_psi - horizontal(u_psi)[2] / slope
+        u_psi = u_psi - horizontal(u_psi)[2] / self._wheel_inertia(state.sigma, sigma_a)
         hxi, mu_new, r = horizontal(u_psi)
         scale = 1.0 + jnp.abs(b) + jnp.sqrt(sum(x**2 for x in state.mu))
         residual = jnp.abs(r) / scale
