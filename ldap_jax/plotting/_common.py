@@ -56,11 +56,9 @@ def style_for(label: str, index: int = 0, *, markers: bool = False) -> dict[str,
         Keyword arguments for ``Axes.plot``.
     """
     low = label.lower()
-    matched = next((pattern for pattern, _ in _STYLES if re.search(pattern, low)), None)
-    if matched is None:
-        out = {"color": _CYCLE[index % len(_CYCLE)], "ls": "-", "marker": "o"}
-    else:
-        out = dict(dict(_STYLES)[matched])
+    fallback = {"color": _CYCLE[index % len(_CYCLE)], "ls": "-", "marker": "o"}
+    matched, style = next(((p, s) for p, s in _STYLES if re.search(p, low)), (None, fallback))
+    out = dict(style)
     if "cayley" in low and matched != "cayley":  # e.g. "RDP6 cayley": RDP6's colour, dash-dot
         out.update(ls="-.", marker="v")
     if not markers:

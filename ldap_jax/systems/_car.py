@@ -97,8 +97,8 @@ class Car(AbstractClosedFormSystem):
         return qdot[3:4]
 
     def effective_inertia(self, sigma):
-        """``I + m rho^2 + K rho^2 sigma^2 / l^2``."""
-        return self.I + self.m * self.rho**2 + self.K * (self.rho * sigma / self.l) ** 2
+        """``I + m rho^2 + K rho^2 sigma^2 / l^2`` (:meth:`_wheel_inertia` at ``sigma_a = sigma_k``)."""
+        return self._wheel_inertia(sigma, sigma)
 
     def velocity_dynamics(self, q, v, f, u_kin):
         sigma = q[4]
