@@ -12,6 +12,7 @@ from . import control as control
 from . import integrators as integrators
 from . import lie as lie
 from . import systems as systems
+from ._compilation_cache import compiler_options as compiler_options
 from ._compilation_cache import enable_compilation_cache as enable_compilation_cache
 from ._compilation_cache import memory_mappings as memory_mappings
 from ._compilation_cache import trim_compilation_cache as trim_compilation_cache

@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from ._compilation_cache import note_program, program_key
+from ._compilation_cache import jit, note_program, program_key
 from ._controls import AbstractControls
 from ._results import RESULTS
 from ._simulate import check_problem
@@ -157,7 +157,7 @@ def reference(
     )
 
 
-@eqx.filter_jit
+@jit
 def _reference(system, q0, qdot0, controls, ts, t0, rtol, atol, solver, max_steps, check_constraints):
     dtype = jnp.result_type(q0, qdot0)
     system, controls = cast_floats((system, controls), dtype)

@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-from ._compilation_cache import note_program, program_key
+from ._compilation_cache import jit, note_program, program_key
 from ._controls import AbstractControls, Constant
 from ._policy import AbstractPolicy, LinearPolicy
 from ._results import RESULTS
@@ -251,7 +251,7 @@ def _check_policy(policy: AbstractPolicy, q0: Array, qdot0: Array) -> None:
         )
 
 
-@eqx.filter_jit
+@jit
 def _simulate(
     system,
     q0,

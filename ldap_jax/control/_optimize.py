@@ -21,6 +21,7 @@ import jax.numpy as jnp
 import optax
 from jaxtyping import Array, Bool, Float, PyTree
 
+from .._compilation_cache import jit
 from .._validation import check_positive_int
 
 __all__ = ["OptimizeResult", "optimize", "multistart", "default_optimizer", "best_of"]
@@ -98,19 +99,19 @@ def _make_chunk(loss_fn: Callable, optimizer, n: int, tol: float):
     return chunk
 
 
-@eqx.filter_jit
+@jit
 def _run_chunk(loss_fn, optimizer, carry, n, tol):
     # filter_jit: arrays inside ``loss_fn`` (e.g. a Task's bound method) are traced arguments, the
     # rest (functions, ints) static, so a new task of the same structure reuses the compilation
     return _make_chunk(loss_fn, optimizer, n, tol)(carry)
 
 
-@eqx.filter_jit
+@jit
 def _run_finish(loss_fn, carry):
     return _finish(loss_fn, carry)
 
 
-@eqx.filter_jit
+@jit
 def _run_multistart(loss_fn, optimizer, params0, n, tol):
     chunk = _make_chunk(loss_fn, optimizer, n, tol)
 

@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from .._compilation_cache import jit
 from .._discrete import DiscreteDynamics, discretize
 from .._numerics import plain
 from .._validation import check_array, check_positive_int, check_positive_number, is_concrete
@@ -164,7 +165,7 @@ def _stopped(tree):
     return jax.tree_util.tree_map(lambda x: jax.lax.stop_gradient(x) if eqx.is_inexact_array(x) else x, tree)
 
 
-@eqx.filter_jit
+@jit
 def _solve(task: Task, params0: Array, options: IPMOptions) -> Solution:
     # the kernels as plain arithmetic: this program differentiates them twice
     with plain():

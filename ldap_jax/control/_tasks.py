@@ -23,6 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, PRNGKeyArray
 
+from .._compilation_cache import compiler_options
 from .._reference import reference
 from .._rollout import check_checkpoint
 from .._simulate import Trajectory, simulate
@@ -611,7 +612,11 @@ def gradient_memory(task: Task, params) -> dict:
     ``temp`` is the scratch space (the residuals reverse mode stores: this is what
     ``checkpoint`` shrinks), ``peak`` = arguments + outputs + temporaries.
     """
-    compiled = jax.jit(lambda p: jax.grad(task.value)(p)).lower(params).compile()
+    compiled = (
+        jax.jit(lambda p: jax.grad(task.value)(p), compiler_options=compiler_options())
+        .lower(params)
+        .compile()
+    )
     ma = compiled.memory_analysis()
     temp = int(ma.temp_size_in_bytes)
     args = int(ma.argument_size_in_bytes)

@@ -10,6 +10,7 @@ import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
+from .._compilation_cache import compiler_options
 from ..systems import AbstractSystem
 from ._common import REFERENCE_STYLE, finite_positive, reference_nodes, root_figure, running_max, style_for
 
@@ -37,7 +38,10 @@ def _reference_values(system: Any, reference: Any) -> tuple[np.ndarray, np.ndarr
 
     q, qdot = np.asarray(reference.q), np.asarray(reference.qdot)
     ok = np.all(np.isfinite(q), axis=1) & np.all(np.isfinite(qdot), axis=1)
-    values = jax.jit(jax.vmap(lambda a, b: (system.energy(a, b), system.momentum(a, b))))
+    values = jax.jit(
+        jax.vmap(lambda a, b: (system.energy(a, b), system.momentum(a, b))),
+        compiler_options=compiler_options(),
+    )
     energy, momentum = (
         np.asarray(v) for v in values(np.where(ok[:, None], q, 0.0), np.where(ok[:, None], qdot, 0.0))
     )

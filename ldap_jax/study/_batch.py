@@ -6,12 +6,12 @@ import math
 import time
 from collections.abc import Sequence
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from .._compilation_cache import jit
 from .._simulate import simulate
 from ..integrators import RK4, AbstractIntegrator
 from ..systems import AbstractSystem
@@ -55,7 +55,7 @@ def _gather(x) -> np.ndarray:
     return np.asarray(x)
 
 
-@eqx.filter_jit
+@jit
 def _batched(system, integrator, q0, qdot0, controls, t_final, n_steps: int, n_out: int):
     def run(a, b, c):
         traj = simulate(
