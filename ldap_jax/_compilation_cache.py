@@ -17,9 +17,9 @@ save plan, integrator, dtype, ...) and, every :data:`CHECK_EVERY` new ones, trim
 
 The library's own compiled entry points (``simulate``, ``reference``, the control solvers, the
 study's batches) are built with :func:`jit`, which compiles with :func:`compiler_options`: on a
-CPU, XLA's loop emitters and no expensive LLVM passes. Our programs are long chains of scalar
-arithmetic inside loops; with these options XLA compiles them in about 0.6x the time at the same
-run time (``scripts/bench.py`` measures both).
+CPU, XLA's loop emitters. Our programs are long chains of scalar arithmetic inside loops; with
+these emitters XLA compiles them in 0.5-0.6x the time, and they run 1.0-1.15x as long
+(``scripts/bench.py`` measures both).
 """
 
 from __future__ import annotations
@@ -48,14 +48,11 @@ __all__ = [
 ]
 
 #: XLA compile options for the library's programs (:func:`jit`): XLA's loop emitters instead of its
-#: newer fusion emitters, and LLVM without its expensive passes. Measured on 2 CPU cores (a car and
-#: a snakeboard rollout, an order-6 rollout and a snakeboard gradient): 16.5 s -> 7.8 s of
-#: compilation, run time unchanged within the machine's noise. Set the environment variable
+#: newer fusion emitters. Measured on 2 CPU cores (``scripts/bench.py``, compile section: batched
+#: snakeboard rollouts, 16 x 1000 steps): compilation 0.5-0.6x (RDP2 2.99 -> 1.84 s, RDP6 3.06 ->
+#: 1.56 s, RK4 2.07 -> 1.04 s), run time 1.0-1.15x. Set the environment variable
 #: ``LDAP_JAX_FAST_COMPILE=0`` to compile with XLA's defaults instead.
-FAST_COMPILE_OPTIONS: dict[str, Any] = {
-    "xla_cpu_use_fusion_emitters": False,
-    "xla_llvm_disable_expensive_passes": True,
-}
+FAST_COMPILE_OPTIONS: dict[str, Any] = {"xla_cpu_use_fusion_emitters": False}
 _UNSET = object()
 _options: Any = _UNSET
 

@@ -10,12 +10,13 @@ import ldap_jax as lj  # importing does not start JAX's backend
 from ldap_jax._compilation_cache import FAST_COMPILE_OPTIONS
 
 # XLA's CPU code generation for every program the tests compile (their own jax.jit too), set before
-# JAX starts its backend: the options the library's entry points compile with
-# (lj.compiler_options(): XLA's loop emitters, no expensive LLVM passes), about 0.5-0.6x the
-# compile time at the same run time. Nearly all of the suite's time is compilation and tracing.
-# Test workers and the processes the tests start (notebook kernels, scripts) inherit them. An XLA
-# that does not know a flag aborts the process, so a child process tries them first (once).
-_FLAGS = " ".join(f"--{k}={str(v).lower()}" for k, v in FAST_COMPILE_OPTIONS.items())
+# JAX starts its backend: the loop emitters the library's entry points compile with
+# (lj.compiler_options()) and, since the tests time nothing, no expensive LLVM passes; together
+# about half the compile time. Nearly all of the suite's time is compilation and tracing. Test
+# workers and the processes the tests start (notebook kernels, scripts) inherit them. An XLA that
+# does not know a flag aborts the process, so a child process tries them first (once).
+_OPTIONS = {**FAST_COMPILE_OPTIONS, "xla_llvm_disable_expensive_passes": True}
+_FLAGS = " ".join(f"--{k}={str(v).lower()}" for k, v in _OPTIONS.items())
 if "LDAP_JAX_TEST_FLAGS" not in os.environ:
     _env = dict(os.environ, XLA_FLAGS=f"{os.environ.get('XLA_FLAGS', '')} {_FLAGS}".strip())
     _probe = [sys.executable, "-c", "import jax; jax.jit(lambda x: x + 1)(1.0)"]
