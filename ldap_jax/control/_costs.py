@@ -45,7 +45,7 @@ def wrap_angle(theta: ArrayLike) -> Array:
     return jnp.arctan2(jnp.sin(theta), jnp.cos(theta))
 
 
-def pose_error(q: Float[ArrayLike, " d"], goal: Float[ArrayLike, 3]) -> Float[Array, 3]:
+def pose_error(q: Float[ArrayLike, " d"], goal: Float[ArrayLike, " 3"]) -> Float[Array, " 3"]:
     """Pose error ``log(g_goal^-1 g)`` in ``(omega, v_x, v_y)`` (App. B) for ``q = (x, y, theta, ...)``.
 
     Expressed in the goal's body frame: the first entry is the heading error in ``(-pi, pi]``
@@ -115,7 +115,7 @@ class Forward(AbstractTerm):
 class TerminalPose(AbstractTerm):
     """``w_heading e_1^2 + w_position (e_2^2 + e_3^2)`` with ``e = log(g_goal^-1 g_N)``."""
 
-    goal: Float[Array, 3]
+    goal: Float[Array, " 3"]
     w_heading: Array = eqx.field(default=1.0, converter=jnp.asarray)
     w_position: Array = eqx.field(default=1.0, converter=jnp.asarray)
 

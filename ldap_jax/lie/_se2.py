@@ -76,27 +76,27 @@ def _half_cot_half(w: Array) -> Array:
     )
 
 
-def hat(v: Float[ArrayLike, 3]) -> Float[Array, "3 3"]:
+def hat(v: Float[ArrayLike, " 3"]) -> Float[Array, "3 3"]:
     """The hat map ``R^3 -> se(2)`` of App. B."""
     v = jnp.asarray(v)
     z = jnp.zeros_like(v[0])
     return jnp.array([[z, -v[0], v[1]], [v[0], z, v[2]], [z, z, z]])
 
 
-def vee(xi_hat: Float[ArrayLike, "3 3"]) -> Float[Array, 3]:
+def vee(xi_hat: Float[ArrayLike, "3 3"]) -> Float[Array, " 3"]:
     """Inverse of :func:`hat`: ``(v1, v2, v3) = (X[1, 0], X[0, 2], X[1, 2])``."""
     x = jnp.asarray(xi_hat)
     return jnp.stack([x[1, 0], x[0, 2], x[1, 2]])
 
 
-def ad(v: Float[ArrayLike, 3]) -> Float[Array, "3 3"]:
+def ad(v: Float[ArrayLike, " 3"]) -> Float[Array, "3 3"]:
     """Matrix of ``ad_v w = [v, w]`` (App. B): ``[[0, 0, 0], [v3, 0, -v1], [-v2, v1, 0]]``."""
     v = jnp.asarray(v)
     z = jnp.zeros_like(v[0])
     return jnp.array([[z, z, z], [v[2], z, -v[0]], [-v[1], v[0], z]])
 
 
-def exp(v: Float[ArrayLike, 3]) -> Float[Array, 3]:
+def exp(v: Float[ArrayLike, " 3"]) -> Float[Array, " 3"]:
     """Exponential map ``exp(v^)`` as a pose ``(x, y, theta)`` (App. B).
 
     Rotates by ``v1`` and translates by
@@ -108,7 +108,7 @@ def exp(v: Float[ArrayLike, 3]) -> Float[Array, 3]:
     return jnp.stack([x, y, v[0]])
 
 
-def log(g: Float[ArrayLike, 3]) -> Float[Array, 3]:
+def log(g: Float[ArrayLike, " 3"]) -> Float[Array, " 3"]:
     """Inverse of :func:`exp` for a pose ``g = (x, y, theta)``, with ``theta`` taken in ``(-pi, pi]``.
 
     ``(v2, v3) = [[c, w/2], [-w/2, c]] (x, y)`` with ``w = theta`` and ``c = (w/2) cot(w/2)``.
@@ -119,7 +119,7 @@ def log(g: Float[ArrayLike, 3]) -> Float[Array, 3]:
     return jnp.stack([w, c * g[0] + 0.5 * w * g[1], -0.5 * w * g[0] + c * g[1]])
 
 
-def cay(v: Float[ArrayLike, 3]) -> Float[Array, 3]:
+def cay(v: Float[ArrayLike, " 3"]) -> Float[Array, " 3"]:
     """Cayley map ``(I - v^/2)^-1 (I + v^/2)`` as a pose ``(x, y, theta)``.
 
     Corrected App. B: rotation block ``[[4 - v1^2, -4 v1], [4 v1, 4 - v1^2]] / (4 + v1^2)``,
@@ -136,33 +136,33 @@ def cay(v: Float[ArrayLike, 3]) -> Float[Array, 3]:
     )
 
 
-def cay_inv(g: Float[ArrayLike, 3]) -> Float[Array, 3]:
+def cay_inv(g: Float[ArrayLike, " 3"]) -> Float[Array, " 3"]:
     """Inverse Cayley map: ``v1 = 2 tan(theta/2)``, ``(v2, v3) = (x + v1 y / 2, y - v1 x / 2)``."""
     g = jnp.asarray(g)
     w = 2.0 * jnp.tan(g[2] / 2.0)
     return jnp.stack([w, g[0] + 0.5 * w * g[1], g[1] - 0.5 * w * g[0]])
 
 
-def compose(g1: Float[ArrayLike, 3], g2: Float[ArrayLike, 3]) -> Float[Array, 3]:
+def compose(g1: Float[ArrayLike, " 3"], g2: Float[ArrayLike, " 3"]) -> Float[Array, " 3"]:
     """``g1 g2`` for poses ``(x, y, theta)`` (angles add, no wrapping)."""
     g1, g2 = jnp.asarray(g1), jnp.asarray(g2)
     c, s = jnp.cos(g1[2]), jnp.sin(g1[2])
     return jnp.stack([g1[0] + c * g2[0] - s * g2[1], g1[1] + s * g2[0] + c * g2[1], g1[2] + g2[2]])
 
 
-def inverse(g: Float[ArrayLike, 3]) -> Float[Array, 3]:
+def inverse(g: Float[ArrayLike, " 3"]) -> Float[Array, " 3"]:
     """``g^-1`` for a pose ``(x, y, theta)``."""
     g = jnp.asarray(g)
     c, s = jnp.cos(g[2]), jnp.sin(g[2])
     return jnp.stack([-(c * g[0] + s * g[1]), s * g[0] - c * g[1], -g[2]])
 
 
-def retract(v: Float[ArrayLike, 3], retraction: str) -> Float[Array, 3]:
+def retract(v: Float[ArrayLike, " 3"], retraction: str) -> Float[Array, " 3"]:
     """``tau(v)`` as a pose, ``tau in {exp, cay}`` (``retraction`` is ``"exp"`` or ``"cayley"``)."""
     return exp(v) if retraction == "exp" else cay(v)
 
 
-def dexp_inv(v: Float[ArrayLike, 3]) -> Float[Array, "3 3"]:
+def dexp_inv(v: Float[ArrayLike, " 3"]) -> Float[Array, "3 3"]:
     """Exact right-trivialized inverse differential of ``exp`` (eq. (28), all terms).
 
     ``dexp^-1_v = sum_j B_j / j! ad_v^j`` (Bernoulli numbers). On SE(2), with
@@ -182,7 +182,7 @@ def dexp_inv(v: Float[ArrayLike, 3]) -> Float[Array, "3 3"]:
     return jnp.array([[one, z, z], [-0.5 * b1 - beta * b2, c, 0.5 * w], [-0.5 * b2 + beta * b1, -0.5 * w, c]])
 
 
-def dcay_inv(v: Float[ArrayLike, 3]) -> Float[Array, "3 3"]:
+def dcay_inv(v: Float[ArrayLike, " 3"]) -> Float[Array, "3 3"]:
     """Right-trivialized inverse differential of the Cayley map, eq. (32) (exact).
 
     ``dcay^-1_v = I - ad_v / 2 + [v1 v, 0_{3x2}] / 4``, i.e. ``w -> (I - v^/2) w^ (I + v^/2)`` (29).
@@ -196,7 +196,7 @@ def dcay_inv(v: Float[ArrayLike, 3]) -> Float[Array, "3 3"]:
 _BERNOULLI = {2: 1.0 / 12.0, 4: -1.0 / 720.0, 6: 1.0 / 30240.0, 8: -1.0 / 1209600.0}
 
 
-def dtau_inv(v: Float[ArrayLike, 3], retraction: str, order: int | None = None) -> Float[Array, "3 3"]:
+def dtau_inv(v: Float[ArrayLike, " 3"], retraction: str, order: int | None = None) -> Float[Array, "3 3"]:
     """``dtau^-1_v`` for ``retraction in {"exp", "cayley"}``.
 
     Args:
@@ -227,13 +227,13 @@ def dtau_inv(v: Float[ArrayLike, 3], retraction: str, order: int | None = None) 
     return out
 
 
-def tangent_to_jaxlie(v: Float[ArrayLike, 3]) -> Float[Array, 3]:
+def tangent_to_jaxlie(v: Float[ArrayLike, " 3"]) -> Float[Array, " 3"]:
     """``(omega, v_x, v_y)`` (ours, the paper's) -> ``(v_x, v_y, omega)`` (jaxlie's)."""
     v = jnp.asarray(v)
     return jnp.stack([v[1], v[2], v[0]])
 
 
-def tangent_from_jaxlie(t: Float[ArrayLike, 3]) -> Float[Array, 3]:
+def tangent_from_jaxlie(t: Float[ArrayLike, " 3"]) -> Float[Array, " 3"]:
     """``(v_x, v_y, omega)`` (jaxlie's) -> ``(omega, v_x, v_y)`` (ours, the paper's)."""
     t = jnp.asarray(t)
     return jnp.stack([t[2], t[0], t[1]])
@@ -253,7 +253,7 @@ class SE2(eqx.Module):
         >>> (g @ g.inverse()).log()   # ~ zeros
     """
 
-    unit_complex_xy: Float[Array, 4]
+    unit_complex_xy: Float[Array, " 4"]
 
     tangent_dim: ClassVar[int] = 3
     parameters_dim: ClassVar[int] = 4
@@ -265,7 +265,7 @@ class SE2(eqx.Module):
         x, y, theta = jnp.asarray(x), jnp.asarray(y), jnp.asarray(theta)
         return SE2(jnp.stack([jnp.cos(theta), jnp.sin(theta), x, y]))
 
-    def as_xy_theta(self) -> Float[Array, 3]:
+    def as_xy_theta(self) -> Float[Array, " 3"]:
         """The pose ``(x, y, theta)`` with ``theta`` in ``(-pi, pi]``."""
         return jnp.concatenate([self.translation, self.theta[None]])
 
@@ -315,10 +315,10 @@ class SE2(eqx.Module):
         x, y, _ = cay(v)
         return SE2(jnp.stack([(4.0 - v[0] ** 2) / d, 4.0 * v[0] / d, x, y]))
 
-    def log(self) -> Float[Array, 3]:
+    def log(self) -> Float[Array, " 3"]:
         return log(self.as_xy_theta())
 
-    def cay_inv(self) -> Float[Array, 3]:
+    def cay_inv(self) -> Float[Array, " 3"]:
         return cay_inv(self.as_xy_theta())
 
     def multiply(self, other: SE2) -> SE2:
@@ -341,7 +341,7 @@ class SE2(eqx.Module):
         z, o = jnp.zeros_like(c), jnp.ones_like(c)
         return jnp.array([[o, z, z], [y, c, -s], [-x, s, c]])
 
-    def apply(self, p: ArrayLike) -> Float[Array, 2]:
+    def apply(self, p: ArrayLike) -> Float[Array, " 2"]:
         """Act on a point of the plane."""
         c, s, x, y = self.unit_complex_xy
         p = jnp.asarray(p)

@@ -91,13 +91,13 @@ def random_draws(key: Array, n: int, dtype) -> tuple[Array, Any, Any]:
     return jax.random.split(key, n), uniform, sign
 
 
-def body_velocity(q: Float[Array, " d"], qdot: Float[Array, " d"]) -> Float[Array, 3]:
+def body_velocity(q: Float[Array, " d"], qdot: Float[Array, " d"]) -> Float[Array, " 3"]:
     """``xi = g^-1 gdot = (thetadot, c xdot + s ydot, -s xdot + c ydot)`` for ``q = (x, y, theta, r)``."""
     c, s = jnp.cos(q[2]), jnp.sin(q[2])
     return jnp.stack([qdot[2], c * qdot[0] + s * qdot[1], -s * qdot[0] + c * qdot[1]])
 
 
-def spatial_velocity(q: Float[Array, " d"], xi: Float[Array, 3]) -> Float[Array, 3]:
+def spatial_velocity(q: Float[Array, " d"], xi: Float[Array, " 3"]) -> Float[Array, " 3"]:
     """``(xdot, ydot, thetadot)`` from the body velocity ``xi = (omega, v_x, v_y)``."""
     c, s = jnp.cos(q[2]), jnp.sin(q[2])
     return jnp.stack([c * xi[1] - s * xi[2], s * xi[1] + c * xi[2], xi[0]])
@@ -262,7 +262,7 @@ class AbstractSystem(eqx.Module):
 
     def velocity_from_momenta(
         self, r: Array, pu: Array, mu: Array, u_kin: Array
-    ) -> tuple[Float[Array, " n"], Float[Array, 3]]:
+    ) -> tuple[Float[Array, " n"], Float[Array, " 3"]]:
         """Invert the reduced Legendre transform on the constraint distribution.
 
         Finds ``(u, xi)``, ``xi = e(r) w - A(r) u`` and ``u`` equal to ``u_kin`` in its kinematic
