@@ -18,7 +18,7 @@ save plan, integrator, dtype, ...) and, every :data:`CHECK_EVERY` new ones, trim
 The library's own compiled entry points (``simulate``, ``reference``, the control solvers, the
 study's batches) are built with :func:`jit`, which compiles with :func:`compiler_options`: on a
 CPU, XLA's loop emitters. Our programs are long chains of scalar arithmetic inside loops; with
-these emitters XLA compiles them in 0.5-0.6x the time, and they run 1.0-1.15x as long
+these emitters XLA compiles them in 0.5-0.6x the time, and they run 1.0-1.16x as long
 (``scripts/bench.py`` measures both).
 """
 
@@ -48,9 +48,9 @@ __all__ = [
 ]
 
 #: XLA compile options for the library's programs (:func:`jit`): XLA's loop emitters instead of its
-#: newer fusion emitters. Measured on 2 CPU cores (``scripts/bench.py``, compile section: batched
-#: snakeboard rollouts, 16 x 1000 steps): compilation 0.5-0.6x (RDP2 2.99 -> 1.84 s, RDP6 3.06 ->
-#: 1.56 s, RK4 2.07 -> 1.04 s), run time 1.0-1.15x. Set the environment variable
+#: newer fusion emitters. Measured on 2 CPU cores (``scripts/bench.py --only compile``: batched
+#: snakeboard rollouts, 16 x 1000 steps): compilation 0.5-0.6x (RDP2 2.80 -> 1.44 s, RDP6 2.29 ->
+#: 1.42 s, RK4 1.95 -> 0.96 s), run time 1.0-1.16x. Set the environment variable
 #: ``LDAP_JAX_FAST_COMPILE=0`` to compile with XLA's defaults instead.
 FAST_COMPILE_OPTIONS: dict[str, Any] = {"xla_cpu_use_fusion_emitters": False}
 _UNSET = object()
