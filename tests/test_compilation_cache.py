@@ -33,3 +33,27 @@ def test_trim_threshold_is_checked():
         lj.trim_compilation_cache(0.0)
     with pytest.raises(ValueError, match="'threshold'"):
         lj.trim_compilation_cache(1.5)
+
+
+def test_compiler_options_top_level_and_nested(monkeypatch):
+    """The library's entry points compile with lj.compiler_options() when called at the top level
+    and stay usable inside a user's jit, vmap and grad (JAX rejects compile options on a nested
+    jit); LDAP_JAX_FAST_COMPILE=0 turns the options off."""
+    from ldap_jax import _compilation_cache as cc
+
+    assert lj.compiler_options() == cc.FAST_COMPILE_OPTIONS  # this XLA knows them
+    car = lj.Car()
+    ctl = lj.Constant(jnp.array([0.1, 0.2]))
+
+    def final_x(q0):
+        return lj.simulate(car, q0, jnp.zeros(5), ctl, t_final=1.0, n_steps=10).q[-1, 0]
+
+    q0 = jnp.zeros(5)
+    top = final_x(q0)
+    assert cc._tracing() is False
+    assert float(jnp.abs(jax.jit(final_x)(q0) - top)) < 1e-15
+    assert float(jnp.max(jnp.abs(jax.vmap(final_x)(jnp.zeros((2, 5))) - top))) < 1e-15
+    assert float(jax.grad(final_x)(q0)[0]) == pytest.approx(1.0, abs=1e-12)  # x_N = x_0 + ...
+    monkeypatch.setattr(cc, "_options", cc._UNSET)
+    monkeypatch.setenv("LDAP_JAX_FAST_COMPILE", "0")
+    assert lj.compiler_options() is None
