@@ -663,6 +663,13 @@ def _fmt(x, spec=".2e"):
     return "n/a" if x is None else format(x, spec)
 
 
+def _section(title: str, intro: list[str], columns: tuple[str, ...], rows: list[tuple]) -> list[str]:
+    """A markdown section: heading, optional intro lines, and a table of ``rows`` (cells as text)."""
+    lines = ["", f"## {title}", ""] + (intro + [""] if intro else [])
+    lines += ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+    return lines + ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
+
+
 def write_markdown(path, res):
     L = [
         "# ldap_jax benchmarks",
@@ -694,17 +701,15 @@ def write_markdown(path, res):
             f"| {_fmt(r['ours_best_over_c'], '.2f')} |"
             for r in res["compiled_c"]
         ]
-    L += [
-        "",
-        "## Forward throughput (positions only, batched)",
-        "",
-        "| model | integrator | B x N | steps/s |",
-        "|---|---|---|---|",
-    ]
-    L += [
-        f"| {r['model']} | {r['integrator']} | {r['B']} x {r['N']} | {r['steps_per_s']:.3g} |"
-        for r in res.get("throughput", [])
-    ]
+    L += _section(
+        "Forward throughput (positions only, batched)",
+        [],
+        ("model", "integrator", "B x N", "steps/s"),
+        [
+            (r["model"], r["integrator"], f"{r['B']} x {r['N']}", f"{r['steps_per_s']:.3g}")
+            for r in res.get("throughput", [])
+        ],
+    )
     for wp in (w for key in ("wp_10s", "wp_600s") for w in res.get(key, {}).values()):
         levels = list(next(iter(wp["cost"].values())))
         L += [
@@ -807,20 +812,18 @@ def write_markdown(path, res):
         f"| {r['case']} | {r['B']} x {r['N']} | {r['wall_min']:.3f} | {r['ratio_to_kernel']:.1f} |"
         for r in res.get("general_step", [])
     ]
-    L += [
-        "",
-        "## Compile times",
-        "",
-        "Batched `simulate` (snakeboard, 16 maneuvers x 1000 steps, diagnostics on), compiled with XLA's",
-        "defaults and with `lj.compiler_options()`; run = fastest of the timed calls.",
-        "",
-        "| integrator | options | compile (s) | run (ms) |",
-        "|---|---|---|---|",
-    ]
-    L += [
-        f"| {r['integrator']} | {r['options']} | {r['compile_s']:.2f} | {r['run_s'] * 1e3:.1f} |"
-        for r in res.get("compile", [])
-    ]
+    L += _section(
+        "Compile times",
+        [
+            "Batched `simulate` (snakeboard, 16 maneuvers x 1000 steps, diagnostics on), compiled with XLA's",
+            "defaults and with `lj.compiler_options()`; run = fastest of the timed calls.",
+        ],
+        ("integrator", "options", "compile (s)", "run (ms)"),
+        [
+            (r["integrator"], r["options"], f"{r['compile_s']:.2f}", f"{r['run_s'] * 1e3:.1f}")
+            for r in res.get("compile", [])
+        ],
+    )
     missing = [s for s in SECTIONS if s not in res]
     if missing:
         L += ["", f"(Sections not run: {', '.join(missing)}.)"]
