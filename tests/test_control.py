@@ -113,6 +113,26 @@ def test_solve_cost_is_the_effort_and_far_below_the_guess(car_solutions):
     )
 
 
+def test_base_curvature_reaches_the_exact_hessian_solution(car_solutions):
+    """hessian="base" (the default: the order-2 step's second derivatives in the Hessian of an
+    order-4 composition) and hessian="exact" reach the same optimum of the composition's problem:
+    the Jacobians and constraints are exact in both, only the Newton matrix differs. Iterated past
+    the default tolerance (1e-11: both stop at the KKT error's round-off floor, a few 1e-9), the two
+    end at the same point to 1e-10 (at the default tol they agree to a few 1e-6, as the solutions
+    of a KKT error of 1e-9 may)."""
+    task, default = car_solutions["parallel_park"]
+    assert bool(default.converged)
+    base = lc.solve(task, tol=1e-11)
+    exact = lc.solve(task, tol=1e-11, hessian="exact")
+    for sol in (base, exact):
+        assert float(sol.kkt_error) < 1e-8 and float(sol.max_violation) < 1e-8
+    np.testing.assert_allclose(base.params, exact.params, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(base.cost, exact.cost, rtol=1e-12)
+    np.testing.assert_allclose(default.params, exact.params, rtol=0, atol=1e-5)
+    assert lc.curvature_integrator(task.integrator) == lj.RDP()
+    assert lc.curvature_integrator(lj.RK4()) == lj.RK4()
+
+
 def test_solve_reach_snakeboard():
     task = lc.reach(integrator=lj.RDP(order=4))
     sol = lc.solve(task)
@@ -168,6 +188,8 @@ def test_solve_bad_inputs_are_clear():
         lc.solve(task, tol=0.0)
     with pytest.raises(ValueError, match="'max_iterations'"):
         lc.solve(task, max_iterations=0)
+    with pytest.raises(ValueError, match="'hessian'"):
+        lc.solve(task, hessian="newton")
     with pytest.raises(ValueError, match="'params0'"):
         lc.solve(task, jnp.zeros((40, 2)))
     with pytest.raises(ValueError, match="sampled controls"):

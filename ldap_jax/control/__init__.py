@@ -24,6 +24,7 @@ from ._parameterizations import AbstractParameterization as AbstractParameteriza
 from ._parameterizations import SampledControls as SampledControls
 from ._parameterizations import SinusoidGait as SinusoidGait
 from ._solve import Solution as Solution
+from ._solve import curvature_integrator as curvature_integrator
 from ._solve import solve as solve
 from ._tasks import TASKS as TASKS
 from ._tasks import Penalty as Penalty

@@ -16,9 +16,10 @@ One iteration follows Wachter and Biegler's IPOPT (Math. Program. 106, 2006), si
 
 * the Newton step of the barrier problem ``min f - mu sum log(slacks)``, solved by the Riccati
   recursion, with the Hessian of the Lagrangian: Gauss-Newton (the objective's and the barrier's
-  curvature) while the constraint violation exceeds ``exact_hessian_tol``, then exact (the
-  integrator step's second derivatives by automatic differentiation), for fast local
-  convergence; if its reduced Hessian is not positive definite, ``delta_w I`` is added and the
+  curvature) while the constraint violation exceeds ``exact_hessian_tol``, then with the
+  dynamics' curvature ``y^T F''`` (second derivatives by automatic differentiation, of
+  ``OCPFunctions.curvature_dynamics`` where given: a cheaper step approximating ``F``), for fast
+  local convergence; if its reduced Hessian is not positive definite, ``delta_w I`` is added and the
   solve repeated (inertia correction);
 * the fraction-to-the-boundary rule keeps the iterates strictly inside the bounds;
 * a backtracking line search with IPOPT's filter (constraint violation ``theta``, barrier
@@ -64,6 +65,9 @@ class OCPFunctions(NamedTuple):
     stage_cost: Callable[[Array], Array]  # chi -> scalar (stages 1..K)
     terminal_cost: Callable[[Array], Array]  # chi_K -> scalar (added to the stage cost of K)
     terminal: Callable[[Array], Array]  # chi_K -> (p,) equality residuals
+    # (chi, v) -> next chi whose second derivatives stand in for the dynamics' in the Hessian of
+    # the Lagrangian (default: ``dynamics`` itself)
+    curvature_dynamics: Callable[[Array, Array], Array] | None = None
 
 
 class IPMOptions(NamedTuple):
@@ -140,9 +144,11 @@ def _derivatives(fns: OCPFunctions, st: IPMState, exact: Array, sr1: bool) -> _D
     g = jax.vmap(jax.grad(fns.stage_cost))(chi)
     H_cost = jax.vmap(jax.hessian(fns.stage_cost))(chi[:-1])
 
+    curved = fns.dynamics if fns.curvature_dynamics is None else fns.curvature_dynamics
+
     def curvature(_):  # the dynamics' second derivatives, weighted by the multipliers
         def one(c, vv, yy):
-            return jax.hessian(lambda w: yy @ fns.dynamics(w[:n], w[n:]))(jnp.concatenate([c, vv]))
+            return jax.hessian(lambda w: yy @ curved(w[:n], w[n:]))(jnp.concatenate([c, vv]))
 
         return jax.vmap(one)(chi[:-1], v[1:], y[1:])
 
