@@ -342,12 +342,16 @@ def ipm_solve(fns: OCPFunctions, chi: Array, v: Array, lo: Array, hi: Array, opt
         theta_min = 1e-4 * jnp.maximum(1.0, theta_max / 1e4)
         filt = jnp.where(mu == st.mu, st.filter, jnp.inf)  # reset when mu changes
 
+        # comparisons of phi allow its round-off (IPOPT's Compare_le, 10 eps |phi0|): near the
+        # solution the decrease alpha * slope falls below it, and a strict test rejects every step
+        slack = 10 * jnp.finfo(dtype).eps * jnp.abs(phi0)
+
         def trial(alpha):
             theta, phi = theta_phi(st.chi + alpha * dchi, st.v + alpha * dv, mu)
             switching = (slope < 0) & (alpha * (-slope) ** 2.3 > theta0**1.1)
             f_type = (theta0 <= theta_min) & switching
-            armijo = phi <= phi0 + 1e-4 * alpha * slope
-            h_ok = (theta <= (1 - 1e-5) * theta0) | (phi <= phi0 - 1e-8 * theta0)
+            armijo = phi <= phi0 + 1e-4 * alpha * slope + slack
+            h_ok = (theta <= (1 - 1e-5) * theta0) | (phi <= phi0 - 1e-8 * theta0 + slack)
             in_filter = jnp.any((theta >= (1 - 1e-5) * filt[:, 0]) & (phi >= filt[:, 1] - 1e-8 * filt[:, 0]))
             ok = jnp.where(f_type, armijo, h_ok) & (theta <= theta_max) & ~in_filter
             return ok & jnp.isfinite(theta) & jnp.isfinite(phi), f_type
