@@ -3,6 +3,8 @@ method of :mod:`._ipm` on the discrete dynamics of the task's integrator."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -67,16 +69,16 @@ def problem_functions(
     def split(chi):
         return chi[:n], chi[n:]
 
-    def dynamics(chi, v):
-        x, u = split(chi)
-        return jnp.concatenate([dyn.step(x, u * scale, v * scale), v])
+    def stage_dynamics(discrete: DiscreteDynamics):
+        def f(chi, v):
+            x, u = split(chi)
+            return jnp.concatenate([discrete.step(x, u * scale, v * scale), v])
 
+        return f
+
+    dynamics = stage_dynamics(dyn)
     base = curvature_integrator(dyn.integrator) if hessian == "base" else dyn.integrator
-    base_dyn = dyn if base is dyn.integrator else discretize(system, base, h=dyn.h, t0=dyn.t0)
-
-    def curvature_dynamics(chi, v):
-        x, u = split(chi)
-        return jnp.concatenate([base_dyn.step(x, u * scale, v * scale), v])
+    curved = None if base is dyn.integrator else stage_dynamics(discretize(system, base, h=dyn.h, t0=dyn.t0))
 
     def first(v):
         return jnp.concatenate([x0, v])
@@ -105,7 +107,6 @@ def problem_functions(
     inf = jnp.full(n - d, jnp.inf, x0.dtype)
     lo = jnp.concatenate([task.q_lower.astype(x0.dtype), -inf, task.c_lower / scale])
     hi = jnp.concatenate([task.q_upper.astype(x0.dtype), inf, task.c_upper / scale])
-    curved = None if base_dyn is dyn else curvature_dynamics
     return OCPFunctions(dynamics, first, stage_cost, terminal_cost, terminal, curved), lo, hi
 
 
@@ -121,14 +122,7 @@ def curvature_integrator(integrator: AbstractIntegrator) -> AbstractIntegrator:
     with a Hessian accurate to ``O(h^2)``: fast linear convergence instead of quadratic, at a
     fraction of the cost per iteration (one substep differentiated twice instead of five or nine)."""
     if isinstance(integrator, RDP) and integrator.order > 2:
-        return RDP(
-            alpha=integrator.alpha,
-            retraction=integrator.retraction,
-            order=2,
-            dtau_order=integrator.dtau_order,
-            solver=integrator.solver,
-            newton_iterations=integrator.newton_iterations,
-        )
+        return dataclasses.replace(integrator, order=2, scheme=None)  # every other setting kept
     return integrator
 
 
