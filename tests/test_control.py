@@ -113,6 +113,7 @@ def test_solve_cost_is_the_effort_and_far_below_the_guess(car_solutions):
     )
 
 
+@pytest.mark.users_codegen  # iterated to the round-off floor
 def test_base_curvature_reaches_the_exact_hessian_solution(car_solutions):
     """hessian="base" (the default: the order-2 step's second derivatives in the Hessian of an
     order-4 composition) and hessian="exact" reach the same optimum of the composition's problem:
