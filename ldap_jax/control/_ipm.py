@@ -121,11 +121,19 @@ def _constraints(fns: OCPFunctions, chi: Array, v: Array) -> tuple[Array, Array]
     return jnp.concatenate([d0[None], d]), fns.terminal(chi[-1])
 
 
+def _theta(defects: Array, cK: Array) -> Array:
+    """The constraint violation of the filter, ``|defects|_1 + |c_K|_1``."""
+    return jnp.sum(jnp.abs(defects)) + jnp.sum(jnp.abs(cK))
+
+
 def _objective(fns: OCPFunctions, chi: Array) -> Array:
     return jnp.sum(jax.vmap(fns.stage_cost)(chi)) + fns.terminal_cost(chi[-1])
 
 
-def _derivatives(fns: OCPFunctions, st: IPMState, exact: Array, sr1: bool) -> _Derivatives:
+def _derivatives(fns: OCPFunctions, st: IPMState, exact_tol: Array, sr1: bool) -> _Derivatives:
+    """The constraints and the derivatives of one iteration. The dynamics' curvature enters ``W``
+    (and the terminal constraints' ``QK``) once the constraint violation ``theta = |defects|_1 +
+    |c_K|_1``, from this same evaluation of the dynamics, is at most ``exact_tol``."""
     chi, v, y = st.chi, st.v, st.y
     K, n = chi.shape
     m = v.shape[1]
@@ -143,6 +151,9 @@ def _derivatives(fns: OCPFunctions, st: IPMState, exact: Array, sr1: bool) -> _D
     )
     g = jax.vmap(jax.grad(fns.stage_cost))(chi)
     H_cost = jax.vmap(jax.hessian(fns.stage_cost))(chi[:-1])
+    chiK = chi[-1]
+    cK, CK = fns.terminal(chiK), jax.jacfwd(fns.terminal)(chiK)
+    exact = _theta(defects, cK) <= exact_tol
 
     curved = fns.dynamics if fns.curvature_dynamics is None else fns.curvature_dynamics
 
@@ -158,8 +169,6 @@ def _derivatives(fns: OCPFunctions, st: IPMState, exact: Array, sr1: bool) -> _D
         H_dyn = jax.lax.cond(exact, curvature, lambda _: jnp.zeros((K - 1, n + m, n + m), dtype), None)
     W = H_dyn.at[:, :n, :n].add(H_cost)
     W = jnp.concatenate([jnp.zeros((1, n + m, n + m), dtype), W])
-    chiK = chi[-1]
-    cK, CK = fns.terminal(chiK), jax.jacfwd(fns.terminal)(chiK)
 
     def lagrangian_K(c, weight):
         return fns.stage_cost(c) + fns.terminal_cost(c) + weight * st.nu @ fns.terminal(c)
@@ -284,7 +293,7 @@ def ipm_solve(fns: OCPFunctions, chi: Array, v: Array, lo: Array, hi: Array, opt
 
     def theta_phi(c, vv, mu):
         defects, cK = _constraints(fns, c, vv)
-        return jnp.sum(jnp.abs(defects)) + jnp.sum(jnp.abs(cK)), barrier_objective(c, mu)
+        return _theta(defects, cK), barrier_objective(c, mu)
 
     def step(st: IPMState, d: _Derivatives, parts) -> IPMState:
         # barrier update (possibly several times) once the barrier problem is solved to kappa mu
@@ -335,7 +344,7 @@ def ipm_solve(fns: OCPFunctions, chi: Array, v: Array, lo: Array, hi: Array, opt
         a_max = _fraction_to_boundary(st.chi, dchi, lo, hi, tau)
         a_z = jnp.minimum(_multiplier_step(st.zl, dzl, tau), _multiplier_step(st.zu, dzu, tau))
         # line search with IPOPT's filter acceptance test
-        theta0 = jnp.sum(jnp.abs(d.defects)) + jnp.sum(jnp.abs(d.cK))
+        theta0 = _theta(d.defects, d.cK)
         phi0 = barrier_objective(st.chi, mu)
         slope = jnp.sum(g * dchi)
         theta_max = jnp.where(jnp.isfinite(st.theta_max), st.theta_max, 1e4 * jnp.maximum(1.0, theta0))
@@ -427,10 +436,9 @@ def ipm_solve(fns: OCPFunctions, chi: Array, v: Array, lo: Array, hi: Array, opt
     sr1 = options.hessian == "sr1"
 
     def body(st: IPMState):
-        theta, _ = theta_phi(st.chi, st.v, st.mu)
-        exact = theta <= options.exact_hessian_tol
-        d = _derivatives(fns, st, exact, sr1)
+        d = _derivatives(fns, st, jnp.asarray(options.exact_hessian_tol, dtype), sr1)
         if sr1:
+            exact = _theta(d.defects, d.cK) <= options.exact_hessian_tol
             # learn the constraints' curvature from the change of their Jacobians along the step
             chi_o, v_o, Z_o, C_o = st.previous
             w_new = jnp.concatenate([st.chi[:-1], st.v[1:]], axis=1)

@@ -300,7 +300,7 @@ def _optimum_jvp(primals, tangents):
     _, (r_chi, r_v, e, c) = jax.jvp(residuals, (diff,), (t_diff,))
     _, _, fns, lo, hi = _setup(task, v[0])
     lo, hi = jnp.broadcast_to(lo, chi.shape), jnp.broadcast_to(hi, chi.shape)
-    d = _derivatives(fns, st, jnp.asarray(True), False)
+    d = _derivatives(fns, st, jnp.asarray(jnp.inf, dtype), False)
     sl = jnp.where(jnp.isfinite(lo), chi - lo, 1.0)
     su = jnp.where(jnp.isfinite(hi), hi - chi, 1.0)
     sigma = jnp.where(jnp.isfinite(lo), st.zl / sl, 0.0) + jnp.where(jnp.isfinite(hi), st.zu / su, 0.0)
