@@ -47,12 +47,25 @@ __all__ = [
     "jit",
 ]
 
-#: XLA compile options for the library's programs (:func:`jit`): XLA's loop emitters instead of its
-#: newer fusion emitters. Measured on 2 CPU cores (``scripts/bench.py --only compile``: batched
-#: snakeboard rollouts, 16 x 1000 steps): compilation 0.5-0.6x (RDP2 2.80 -> 1.44 s, RDP6 2.29 ->
-#: 1.42 s, RK4 1.95 -> 0.96 s), run time 1.0-1.16x. Set the environment variable
-#: ``LDAP_JAX_FAST_COMPILE=0`` to compile with XLA's defaults instead.
-FAST_COMPILE_OPTIONS: dict[str, Any] = {"xla_cpu_use_fusion_emitters": False}
+#: XLA compile options for the library's programs (:func:`jit`), each measured on 2 CPU cores:
+#:
+#: * ``xla_cpu_use_fusion_emitters=False``: XLA's loop emitters instead of its newer fusion
+#:   emitters. ``scripts/bench.py --only compile`` (batched snakeboard rollouts, 16 x 1000 steps):
+#:   compilation 0.5-0.6x (RDP2 2.80 -> 1.44 s, RDP6 2.29 -> 1.42 s, RK4 1.95 -> 0.96 s), run time
+#:   1.0-1.16x. A batch of 16 interior-point solves (``jax.vmap(lc.solve)``): first call 14.7 ->
+#:   7.7 s.
+#: * ``xla_cpu_experimental_ynn_fusion_type=""``: no YNNPACK fusions. XLA hands the small batched
+#:   matrix products of a vmapped Riccati recursion to YNNPACK, whose per-call cost grows faster
+#:   than the batch: the factorisation of 64 problems (101 stages, 7 x 7 blocks) 24 -> 4.6 ms, a
+#:   batch of 16 solves 0.76 -> 0.52 s; rollouts unchanged (``bench.py --only throughput``, two
+#:   alternating runs each, every integrator within 5%).
+#:
+#: An option this XLA does not know is left out (each is checked once). Set the environment
+#: variable ``LDAP_JAX_FAST_COMPILE=0`` to compile with XLA's defaults instead.
+FAST_COMPILE_OPTIONS: dict[str, Any] = {
+    "xla_cpu_use_fusion_emitters": False,
+    "xla_cpu_experimental_ynn_fusion_type": "",
+}
 _UNSET = object()
 _options: Any = _UNSET
 
@@ -199,9 +212,9 @@ def enable_compilation_cache(
 
 
 def compiler_options() -> dict[str, Any] | None:
-    """The XLA compile options of the library's programs: :data:`FAST_COMPILE_OPTIONS`, or
-    ``None`` (XLA's defaults) if ``LDAP_JAX_FAST_COMPILE=0`` or this XLA does not know them
-    (checked once, by compiling a one-operation program).
+    """The XLA compile options of the library's programs: those of :data:`FAST_COMPILE_OPTIONS`
+    that this XLA knows (each checked once, by compiling a one-operation program), or ``None``
+    (XLA's defaults) if ``LDAP_JAX_FAST_COMPILE=0`` or it knows none of them.
 
     Pass them to your own ``jax.jit`` to compile a rollout as fast as the library does:
 
@@ -211,21 +224,39 @@ def compiler_options() -> dict[str, Any] | None:
     """
     global _options
     if _options is _UNSET:
-        _options = None
+        known = {}
         if os.environ.get("LDAP_JAX_FAST_COMPILE", "1").strip() not in ("0", "false", "False"):
-            try:
-                probe = jax.jit(lambda x: x + 1, compiler_options=FAST_COMPILE_OPTIONS)
-                probe.lower(np.float32(0)).compile()
-                _options = dict(FAST_COMPILE_OPTIONS)
-            except Exception:  # pragma: no cover - an XLA without these options
-                _options = None
+            for key, value in FAST_COMPILE_OPTIONS.items():
+                try:
+                    probe = jax.jit(lambda x: x + 1, compiler_options={key: value})
+                    probe.lower(np.float32(0)).compile()
+                    known[key] = value
+                except Exception:  # pragma: no cover - an XLA without this option
+                    pass
+        _options = known or None
     return None if _options is None else dict(_options)
 
 
+def _batched_at_top_level() -> bool:
+    """True inside ``jax.vmap`` (possibly nested) with no ``jit`` or other staging trace around it:
+    the batched program then runs as a top-level one and may carry compile options."""
+    try:
+        from jax._src import core
+        from jax._src.interpreters import batching
+
+        trace = core.trace_ctx.trace
+        while isinstance(trace, batching.BatchTrace):
+            trace = trace.parent_trace
+        return isinstance(trace, core.EvalTrace)
+    except (ImportError, AttributeError):  # pragma: no cover - a future JAX: no options
+        return False
+
+
 class _Jit:
-    """``equinox.filter_jit(fun)``; called outside any JAX trace, compiled with
-    :func:`compiler_options` (JAX accepts compile options only on a top-level ``jit``: inside a
-    user's ``jit``, ``vmap`` or ``grad`` the program is the user's and compiles with its options).
+    """``equinox.filter_jit(fun)``; called outside any JAX trace or under a top-level
+    ``jax.vmap`` (whose batched program runs as a top-level one), compiled with
+    :func:`compiler_options`. JAX accepts compile options only on a top-level program: inside a
+    user's ``jit`` or ``grad`` the program is the user's and compiles with its options.
     Attributes (``lower``, equinox's ``_cached``) are the top-level wrapper's."""
 
     def __init__(self, fun: Callable):
@@ -242,7 +273,7 @@ class _Jit:
         return self._top
 
     def __call__(self, *args, **kwargs):
-        if _tracing():
+        if _tracing() and not _batched_at_top_level():
             if self._nested is None:
                 self._nested = eqx.filter_jit(self._fun)
             return self._nested(*args, **kwargs)
@@ -256,6 +287,7 @@ class _Jit:
 
 def jit(fun: Callable) -> Callable:
     """``equinox.filter_jit(fun)`` compiled with :func:`compiler_options` when called outside
-    any JAX trace (decided at the first call, so importing the library does not start JAX's
-    backend). Arrays are traced, everything else is static, exactly as with ``filter_jit``."""
+    any JAX trace or under a top-level ``jax.vmap`` (decided at the first call, so importing the
+    library does not start JAX's backend). Arrays are traced, everything else is static, exactly
+    as with ``filter_jit``."""
     return _Jit(fun)

@@ -54,6 +54,20 @@ def test_compiler_options_top_level_and_nested(monkeypatch):
     assert float(jnp.abs(jax.jit(final_x)(q0) - top)) < 1e-15
     assert float(jnp.max(jnp.abs(jax.vmap(final_x)(jnp.zeros((2, 5))) - top))) < 1e-15
     assert float(jax.grad(final_x)(q0)[0]) == pytest.approx(1.0, abs=1e-12)  # x_N = x_0 + ...
+    # where the options apply: at the top level and under a top-level vmap (the batched program
+    # runs as a top-level one), not inside a user's jit or grad
+    seen = []
+
+    def where(x):
+        seen.append(cc._batched_at_top_level())
+        return x
+
+    jax.vmap(jax.vmap(where))(jnp.zeros((2, 2)))
+    jax.jit(jax.vmap(where))(jnp.zeros(2))
+    jax.vmap(jax.jit(where))(jnp.zeros(2))
+    jax.grad(where)(1.0)
+    jax.vmap(jax.grad(where))(jnp.zeros(2))
+    assert seen == [True, False, False, False, False]
     monkeypatch.setattr(cc, "_options", cc._UNSET)
     monkeypatch.setenv("LDAP_JAX_FAST_COMPILE", "0")
     assert lj.compiler_options() is None

@@ -36,7 +36,7 @@ from typing import NamedTuple
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, Bool, Float, Int
 
 from ._riccati import riccati_apply, riccati_factor
 
@@ -102,6 +102,7 @@ class IPMState(NamedTuple):
     iteration: Int[Array, ""]
     error: Float[Array, ""]
     violation: Float[Array, ""]  # largest constraint violation (max norm) at chi, v
+    held: Bool[Array, ""]  # the last iteration updated only the multipliers (see ``step``)
     result: SOLVER_RESULTS
 
 
@@ -280,6 +281,7 @@ def ipm_solve(fns: OCPFunctions, chi: Array, v: Array, lo: Array, hi: Array, opt
         iteration=jnp.zeros((), jnp.int32),
         error=jnp.asarray(jnp.inf, dtype),
         violation=jnp.asarray(jnp.inf, dtype),
+        held=jnp.zeros((), bool),
         result=SOLVER_RESULTS.max_iterations,
     )
     tol = jnp.asarray(options.tol, dtype)
@@ -380,6 +382,13 @@ def ipm_solve(fns: OCPFunctions, chi: Array, v: Array, lo: Array, hi: Array, opt
             ls_cond, ls_body, (a_max, jnp.zeros((), jnp.int32), false, false)
         )
         alpha = jnp.where(ls_ok, alpha, 0.0)
+        # At a feasible point near the solution the barrier objective and the violation change
+        # by less than their round-off along the step (|alpha * slope| ~ 1e-13 here), so the
+        # filter may reject every step while the KKT error, mostly dual, is still above tol. The
+        # iteration then keeps the primal point and takes the multipliers of the Newton step
+        # (their update is the part the filter cannot see); a second failure in a row stops.
+        hold = ~ls_ok & (theta0 <= theta_min) & ~st.held
+        a_dual = jnp.where(hold, 1.0, alpha)
         entry = jnp.stack([(1 - 1e-5) * theta0, phi0 - 1e-8 * theta0])
         filt = jnp.where(ls_ok & ~f_type, jnp.concatenate([entry[None], filt[:-1]]), filt)
         new_chi = st.chi + alpha * dchi
@@ -392,8 +401,8 @@ def ipm_solve(fns: OCPFunctions, chi: Array, v: Array, lo: Array, hi: Array, opt
         new = st._replace(
             chi=new_chi,
             v=st.v + alpha * dv,
-            y=st.y + alpha * (sol.y - st.y),
-            nu=st.nu + alpha * (sol.nu - st.nu),
+            y=st.y + a_dual * (sol.y - st.y),
+            nu=st.nu + a_dual * (sol.nu - st.nu),
             zl=zl,
             zu=zu,
             mu=mu,
@@ -401,6 +410,7 @@ def ipm_solve(fns: OCPFunctions, chi: Array, v: Array, lo: Array, hi: Array, opt
             filter=filt,
             delta_w=delta,
             iteration=st.iteration + 1,
+            held=hold,
         )
         finite = jnp.all(jnp.isfinite(new.chi)) & jnp.all(jnp.isfinite(new.v)) & jnp.all(jnp.isfinite(new.y))
         result = SOLVER_RESULTS.where(
@@ -410,7 +420,7 @@ def ipm_solve(fns: OCPFunctions, chi: Array, v: Array, lo: Array, hi: Array, opt
                 ~reg_ok,
                 SOLVER_RESULTS.regularization_failed,
                 SOLVER_RESULTS.where(
-                    ~ls_ok, SOLVER_RESULTS.line_search_failed, SOLVER_RESULTS.max_iterations
+                    ~ls_ok & ~hold, SOLVER_RESULTS.line_search_failed, SOLVER_RESULTS.max_iterations
                 ),
             ),
         )
