@@ -153,7 +153,7 @@ def _derivatives(fns: OCPFunctions, st: IPMState, exact_tol: Array, sr1: bool) -
     g = jax.vmap(jax.grad(fns.stage_cost))(chi)
     H_cost = jax.vmap(jax.hessian(fns.stage_cost))(chi[:-1])
     chiK = chi[-1]
-    cK, CK = fns.terminal(chiK), jax.jacfwd(fns.terminal)(chiK)
+    CK, cK = jax.jacfwd(lambda c: (fns.terminal(c),) * 2, has_aux=True)(chiK)
     exact = _theta(defects, cK) <= exact_tol
 
     curved = fns.dynamics if fns.curvature_dynamics is None else fns.curvature_dynamics

@@ -53,6 +53,29 @@ class Solution(eqx.Module):
     multipliers: tuple[Array, Array]
 
 
+class _LazyNode:
+    """A :class:`Node` computed on first use: a cost that reads neither ``q`` nor ``qdot`` (the
+    control effort) adds no velocity recovery to the solver's program, whose derivatives of the
+    costs (gradients, Hessians) would otherwise trace it several times over."""
+
+    def __init__(self, compute):
+        self._compute = compute
+        self._node: Node | None = None
+
+    def _get(self) -> Node:
+        if self._node is None:
+            self._node = Node(*self._compute())
+        return self._node
+
+    @property
+    def q(self) -> Array:
+        return self._get().q
+
+    @property
+    def qdot(self) -> Array:
+        return self._get().qdot
+
+
 def problem_functions(
     task: Task, dyn: DiscreteDynamics, x0: Array, *, hessian: str = "exact"
 ) -> tuple[OCPFunctions, Array, Array]:
@@ -86,12 +109,12 @@ def problem_functions(
     def stage_cost(chi):
         x, u = split(chi)
         c = u * scale
-        obs = Node(*dyn.node(x, c))
+        obs = _LazyNode(lambda: dyn.node(x, c))
         return sum((t.stage(system, obs, c, h) for t in terms), jnp.zeros((), chi.dtype))
 
     def terminal_cost(chi):
         x, u = split(chi)
-        obs = Node(*dyn.node(x, u * scale))
+        obs = _LazyNode(lambda: dyn.node(x, u * scale))
         return sum((t.terminal(system, obs, task.q0) for t in terms), jnp.zeros((), chi.dtype))
 
     def terminal(chi):
