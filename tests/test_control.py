@@ -113,6 +113,34 @@ def test_solve_cost_is_the_effort_and_far_below_the_guess(car_solutions):
     )
 
 
+def test_solver_costs_read_the_node_only_when_a_term_needs_it():
+    """The solver's cost terms get a lazy node: the effort (the goal tasks' objective) adds no
+    velocity recovery to the traced program; a term that reads, unpacks or indexes the node gets
+    the same values as the node itself, computed once."""
+    from ldap_jax.control._solve import _LazyNode
+
+    calls = []
+
+    def compute():
+        calls.append(1)
+        return jnp.arange(3.0), -jnp.arange(3.0)
+
+    node = _LazyNode(compute)
+    assert not calls
+    q, qdot = node
+    assert calls == [1]
+    np.testing.assert_array_equal(q, node.q)
+    np.testing.assert_array_equal(qdot, node[1])
+    assert len(node) == 2 and node._asdict()["qdot"] is node.qdot and calls == [1]
+    # the solver's stage cost of the effort: no velocity recovery in its program
+    task = lc.parallel_park(n_steps=10)
+    _, _, fns, _, _ = lc._solve._setup(task, task.init()[0])
+    chi = jnp.zeros(jax.eval_shape(fns.first, task.init()[0]).shape)
+    n_effort = len(jax.make_jaxpr(fns.stage_cost)(chi).eqns)
+    n_terminal = len(jax.make_jaxpr(fns.terminal)(chi).eqns)
+    assert n_effort < 20 < n_terminal, (n_effort, n_terminal)
+
+
 @pytest.mark.users_codegen  # iterated to the round-off floor
 def test_base_curvature_reaches_the_exact_hessian_solution(car_solutions):
     """hessian="base" (the default: the order-2 step's second derivatives in the Hessian of an

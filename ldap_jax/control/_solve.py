@@ -75,6 +75,21 @@ class _LazyNode:
     def qdot(self) -> Array:
         return self._get().qdot
 
+    # the rest of the NamedTuple's protocol, for terms that unpack or index the node
+    def __iter__(self):
+        return iter(self._get())
+
+    def __getitem__(self, i):
+        return self._get()[i]
+
+    def __len__(self) -> int:
+        return len(Node._fields)
+
+    def __getattr__(self, name):
+        if name.startswith("__") or name in ("_compute", "_node"):
+            raise AttributeError(name)
+        return getattr(self._get(), name)
+
 
 def problem_functions(
     task: Task, dyn: DiscreteDynamics, x0: Array, *, hessian: str = "exact"
