@@ -4,6 +4,7 @@ method of :mod:`._ipm` on the discrete dynamics of the task's integrator."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import equinox as eqx
 import jax
@@ -56,39 +57,29 @@ class Solution(eqx.Module):
 class _LazyNode:
     """A :class:`Node` computed on first use: a cost that reads neither ``q`` nor ``qdot`` (the
     control effort) adds no velocity recovery to the solver's program, whose derivatives of the
-    costs (gradients, Hessians) would otherwise trace it several times over."""
+    costs (gradients, Hessians) would otherwise trace it several times over. Reads, unpacking and
+    indexing go to the node, as for the NamedTuple itself."""
 
     def __init__(self, compute):
         self._compute = compute
-        self._node: Node | None = None
 
-    def _get(self) -> Node:
-        if self._node is None:
-            self._node = Node(*self._compute())
-        return self._node
+    @functools.cached_property
+    def _node(self) -> Node:
+        return Node(*self._compute())
 
-    @property
-    def q(self) -> Array:
-        return self._get().q
+    def __getattr__(self, name):  # q, qdot and the NamedTuple's methods
+        if name.startswith("__") or name in ("_compute", "_node"):
+            raise AttributeError(name)
+        return getattr(self._node, name)
 
-    @property
-    def qdot(self) -> Array:
-        return self._get().qdot
-
-    # the rest of the NamedTuple's protocol, for terms that unpack or index the node
     def __iter__(self):
-        return iter(self._get())
+        return iter(self._node)
 
     def __getitem__(self, i):
-        return self._get()[i]
+        return self._node[i]
 
     def __len__(self) -> int:
         return len(Node._fields)
-
-    def __getattr__(self, name):
-        if name.startswith("__") or name in ("_compute", "_node"):
-            raise AttributeError(name)
-        return getattr(self._get(), name)
 
 
 def problem_functions(
