@@ -60,25 +60,27 @@ def newton(
     tol = jax.lax.stop_gradient(jnp.asarray(tol, z0.dtype))
 
     def iterate(f, z_init):
-        def newton_step(z, r):
+        # One loop body (one trace of the residual and its Jacobian): Newton steps while the
+        # residual is above tol and the budget lasts, then the polishing step, kept only if it
+        # lowers the residual.
+        def cond(carry):
+            return ~carry[3]
+
+        def body(carry):
+            z, r, it, _ = carry
+            polish = ~((it < max_iterations) & (jnp.linalg.norm(r) > tol))
             z_new = z - solve(jax.jacfwd(f)(z), r)
             ok = jnp.all(jnp.isfinite(z_new))
             z_new = jnp.where(ok, z_new, z)
-            return z_new, jnp.where(ok, f(z_new), r), ok
+            r_new = jnp.where(ok, f(z_new), r)
+            keep = jnp.where(polish, jnp.linalg.norm(r_new) <= jnp.linalg.norm(r), True)
+            z, r = jnp.where(keep, z_new, z), jnp.where(keep, r_new, r)
+            # a rejected step cannot be retried
+            it = jnp.where(polish, it, jnp.where(ok, it + 1, max_iterations))
+            return z, r, it, polish
 
-        def cond(carry):
-            _, r, it = carry
-            return (it < max_iterations) & (jnp.linalg.norm(r) > tol)
-
-        def body(carry):
-            z, r, it = carry
-            z, r, ok = newton_step(z, r)
-            return z, r, jnp.where(ok, it + 1, max_iterations)  # a rejected step cannot be retried
-
-        z, r, it = jax.lax.while_loop(cond, body, (z_init, f(z_init), jnp.zeros((), jnp.int32)))
-        z_pol, r_pol, _ = newton_step(z, r)
-        better = jnp.linalg.norm(r_pol) <= jnp.linalg.norm(r)
-        z, r = jnp.where(better, z_pol, z), jnp.where(better, r_pol, r)
+        init = (z_init, f(z_init), jnp.zeros((), jnp.int32), jnp.zeros((), bool))
+        z, r, it, _ = jax.lax.while_loop(cond, body, init)
         # the aux data rides as floats: custom_root differentiates through its outputs
         return z, (jnp.linalg.norm(r), it.astype(z.dtype))
 

@@ -63,7 +63,7 @@ os.environ["JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES"] = "0"
 _GROUPS = {
     "test_convergence.py": "convergence",  # helpers.convergence_case / convergence_runs
     "test_dla_gni.py": "convergence",
-    "test_closed_form.py": "closed_form",  # its _runs, helpers.sleigh_newton_run
+    "test_closed_form.py": "closed_form",  # its kernel and Newton runs, helpers.sleigh_newton_run
 }
 
 

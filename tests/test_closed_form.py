@@ -69,19 +69,21 @@ def _batch(name):
 
 
 @functools.cache
-def _runs(name: str, retraction: str, dtype: str):
-    """Kernel (one run per alpha) and Newton (all alphas at once) trajectories, per worker."""
+def _kernel_run(name: str, retraction: str, dtype: str, alpha: float):
+    """The kernel's trajectories at one alpha (a Python float: one program per alpha), per worker."""
     dt = jnp.dtype(dtype)
-    system = _cast(SYSTEMS[name], dt)
-    batch = _cast(_batch(name), dt)
-    kernel = [
-        simulate_batch(system, lj.RDP(alpha=a, retraction=retraction), batch, T_FINAL, N_STEPS)
-        for a in ALPHAS
-    ]
-    newton = simulate_over_alphas(
+    system, batch = _cast(SYSTEMS[name], dt), _cast(_batch(name), dt)
+    return simulate_batch(system, lj.RDP(alpha=alpha, retraction=retraction), batch, T_FINAL, N_STEPS)
+
+
+@functools.cache
+def _newton_runs(name: str, retraction: str, dtype: str):
+    """Newton's trajectories at every alpha of ALPHAS (one program), per worker."""
+    dt = jnp.dtype(dtype)
+    system, batch = _cast(SYSTEMS[name], dt), _cast(_batch(name), dt)
+    return simulate_over_alphas(
         system, batch, ALPHAS, T_FINAL, N_STEPS, retraction=retraction, solver="newton"
     )
-    return kernel, newton
 
 
 def _members(traj, sel):
@@ -124,8 +126,9 @@ def test_kernel_equals_newton_float64(name, retraction):
     """Every alpha in {0, 1/2, 1}: the closed form and Newton agree to round-off over 500 steps,
     and report a failure (the snakeboard's singularity) at the same step, NaN after it."""
     system = SYSTEMS[name]
-    kernel, newton = _runs(name, retraction, "float64")
-    for alpha, kern, newt in zip(ALPHAS, kernel, newton):
+    newton = _newton_runs(name, retraction, "float64")
+    for alpha, newt in zip(ALPHAS, newton):
+        kern = _kernel_run(name, retraction, "float64", alpha)
         assert lj.RDP(alpha=alpha, retraction=retraction).uses_kernel(system)
         random = slice(0, BATCH)
         _assert_equal_to_roundoff(
@@ -186,8 +189,9 @@ F32_CASES = [
 )
 def test_kernel_equals_newton_float32(name, alpha, retraction):
     i = ALPHAS.index(alpha)
-    kern32, newt32 = (runs[i] for runs in _runs(name, retraction, "float32"))
-    ref = _runs(name, retraction, "float64")[1][i]
+    kern32 = _kernel_run(name, retraction, "float32", alpha)
+    newt32 = _newton_runs(name, retraction, "float32")[i]
+    ref = _newton_runs(name, retraction, "float64")[i]
     for traj in (kern32, newt32):
         for field in FIELDS + ("t", "constraint_residual", "step_residual"):
             assert getattr(traj, field).dtype == jnp.float32, field
