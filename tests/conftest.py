@@ -20,9 +20,8 @@ from ldap_jax._compilation_cache import FAST_COMPILE_OPTIONS
 # At -O0 the same operation can round differently in a vectorised and a scalar loop: `a * b + c`
 # is fused into one rounding (FMA) in one and not the other (258 of 1001 random values differ
 # between a vectorised map and a scan; tanh 434), which XLA's default code generation does not do.
-# Tests whose assertion is bit-for-bit agreement between two compiled programs, or that run at the
-# round-off floor, are marked ``users_codegen``: each runs in a child process with the code
-# generation users get
+# Tests whose assertion is bit-for-bit agreement between two compiled programs are marked
+# ``users_codegen``: each runs in a child process with the code generation users get
 # (:func:`pytest_pyfunc_call`).
 _USERS = os.environ.get("LDAP_JAX_USERS_CODEGEN") == "1"
 if "LDAP_JAX_USER_XLA_FLAGS" not in os.environ:
