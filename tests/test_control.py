@@ -145,9 +145,9 @@ def test_base_curvature_reaches_the_exact_hessian_solution(car_solutions):
     """hessian="base" (the default: the order-2 step's second derivatives in the Hessian of an
     order-4 composition) and hessian="exact" reach the same optimum of the composition's problem:
     the Jacobians and constraints are exact in both, only the Newton matrix differs. Iterated past
-    the default tolerance (1e-11: both stop at the KKT error's round-off floor, a few 1e-9), the two
-    end at the same point to 1e-10 (at the default tol they agree to a few 1e-6, as the solutions
-    of a KKT error of 1e-9 may).
+    the default tolerance (1e-11: both stop at the KKT error's round-off floor, below the 1e-8
+    asserted), the two end at the same point to 1e-10 (at the default tol they agree to a few 1e-6,
+    as the solutions of a KKT error of 1e-9 may).
 
     It runs with the suite's code generation (LLVM -O0): measured there, the two solutions differ by
     3e-13 with KKT errors of 6e-10 and 8e-10; with XLA's default code generation, 8e-14 with 7e-9
