@@ -9,7 +9,7 @@ import numpy as np
 from jax.ad_checkpoint import checkpoint_name
 from jaxtyping import Array
 
-__all__ = ["sincos", "SAVED", "saved", "materialise", "plain"]
+__all__ = ["sincos", "SAVED", "saved", "materialise", "plain", "plain_active"]
 
 import contextlib
 
@@ -28,6 +28,11 @@ def plain():
         yield
     finally:
         _PLAIN.pop()
+
+
+def plain_active() -> bool:
+    """True inside :func:`plain`."""
+    return _PLAIN[-1]
 
 
 # fdlibm __kernel_sin / __kernel_cos coefficients (|r| <= pi/4)

@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
+from . import _tracing
 from ._numerics import SAVED, materialise, saved
 from ._results import RESULTS, first_failure
 from .integrators import AbstractIntegrator
@@ -170,7 +171,7 @@ def rollout(
     c_first = controls(t0, q0, qdot0) if policy else controls(t0)
     c_stage0 = sample(jnp.zeros((), jnp.int32), Observation(q0, qdot0, *([None] * 4)))
     state0 = integrator.init(system, h, q0, qdot0, c_stage0)
-    obs0 = integrator.observe(system, state0, c_first)
+    obs0 = _tracing.observe(integrator, system, state0, c_first)
     obs0 = obs0._replace(qdot=qdot0)  # node 0 reports the given velocity
     # invalid inputs (found on traced values): NaN from node 0 on
     obs0 = _masked(obs0, jnp.where(initial_result == RESULTS.successful, 1.0, jnp.nan).astype(dtype))
@@ -181,16 +182,16 @@ def rollout(
     def step(carry: _Carry, k, observe: bool):
         """Step k: node k -> node k + 1 (observed when ``observe``)."""
         c_stage = sample(k, carry.obs)
-        new_state, info = integrator.step(system, h, carry.state, c_stage)
+        new_state, info = _tracing.step(integrator, system, h, carry.state, c_stage)
         step_result = info.result
         obs, work, abs_work = carry.obs, carry.work, carry.abs_work
         if observe:
             if policy:
-                obs_new = integrator.observe(system, new_state, c_stage[-1])
+                obs_new = _tracing.observe(integrator, system, new_state, c_stage[-1])
                 c_node = controls(t0 + h * (k + 1).astype(dtype), obs_new.q, obs_new.qdot)
                 obs_new = obs_new._replace(power=system.power(system.inputs(c_node)[0], obs_new.qdot[3:]))
             else:
-                obs_new = integrator.observe(system, new_state, node_controls(k + 1, c_stage))
+                obs_new = _tracing.observe(integrator, system, new_state, node_controls(k + 1, c_stage))
             if diagnostics:
                 work = carry.work + 0.5 * h * (carry.obs.power + obs_new.power)
                 abs_work = carry.abs_work + 0.5 * jnp.abs(h) * (

@@ -60,6 +60,73 @@ def test_no_recompilation_with_new_values():
     assert _CountingRK4.traces == 1
 
 
+class _StepCountingRK4(lj.RK4):
+    def step(self, system, h, state, c):
+        _StepCountingRK4.traces += 1
+        return super().step(system, h, state, c)
+
+
+def test_step_is_traced_once_across_programs():
+    """Programs that differ in their step count, save policy, batching or differentiation trace the
+    integrator's step once (:func:`ldap_jax._tracing.traced_once`), and each gives its own answer."""
+    _StepCountingRK4.traces = 0
+    sb = SYSTEMS["snakeboard"]
+    integrator = _StepCountingRK4()
+    q0, qdot0, ctl = index(maneuvers(sb, 2, seed=3), 0)
+
+    def final(n, **kw):
+        return lj.simulate(sb, q0, qdot0, ctl, t_final=2.0, n_steps=n, integrator=integrator, **kw).q[-1]
+
+    q20, q40, q40_final = final(20), final(40), final(40, save="final")
+    assert _StepCountingRK4.traces == 1
+    np.testing.assert_allclose(q40, q40_final, rtol=1e-13, atol=1e-13)
+    batch = maneuvers(sb, 2, seed=3)
+    q20s = jax.vmap(
+        lambda a, b, c: lj.simulate(sb, a, b, c, t_final=2.0, n_steps=20, integrator=integrator).q[-1]
+    )(*batch)
+    np.testing.assert_allclose(q20s[0], q20, rtol=1e-13, atol=1e-13)
+    ref = final(320)
+    err20, err40 = (float(jnp.linalg.norm(q - ref)) for q in (q20, q40))
+    assert 0 < 8 * err40 < err20, (err20, err40)  # each program integrates with its own step (RK4)
+    jax.grad(
+        lambda a: lj.simulate(
+            sb,
+            q0,
+            qdot0,
+            eqx.tree_at(lambda c: c.amplitude, ctl, a),
+            t_final=2.0,
+            n_steps=30,
+            integrator=integrator,
+        ).q[-1, 0]
+    )(ctl.amplitude)
+    assert _StepCountingRK4.traces == 1
+
+
+def test_traced_once_keeps_constants_concrete():
+    """What is concrete at the call stays concrete inside (code may branch on it) and is part of the
+    key; traced values are the inner program's arguments; an eager call runs as it is."""
+    from ldap_jax._numerics import plain
+    from ldap_jax._tracing import traced_once
+
+    seen = []
+
+    @traced_once
+    def scale(p, x):
+        seen.append(isinstance(p["a"], jax.core.Tracer))
+        return x * p["a"] + p["b"]
+
+    two, three = {"a": jnp.asarray(2.0), "b": 1.0}, {"a": jnp.asarray(3.0), "b": 1.0}
+    out = jax.jit(lambda x: (scale(two, x), scale(two, 2 * x), scale(three, x)))(jnp.asarray(1.0))
+    assert [float(v) for v in out] == [3.0, 5.0, 4.0]
+    assert seen == [False, False]  # one trace per constant: 2.0 (twice), 3.0
+    with plain():  # the kernels trace differently inside plain(): a new key
+        jax.jit(lambda x: scale(two, x))(jnp.asarray(1.0))
+    assert seen == [False, False, False]
+    assert float(jax.grad(lambda x: scale({"a": x, "b": 0.0}, x))(jnp.asarray(3.0))) == 6.0
+    assert seen[-1] is True  # a traced parameter is an argument of the inner program
+    assert float(scale(two, 4.0)) == 9.0 and seen[-1] is False  # eager: no inner program
+
+
 def _fd_check(loss, x, eps=1e-6, rtol=1e-5):
     """``jax.grad(loss)(x)`` against central differences (one compiled value-and-gradient)."""
     value_and_grad = jax.jit(jax.value_and_grad(loss))
