@@ -22,7 +22,6 @@ import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Float
 
-from . import _tracing
 from ._linalg import solve
 from ._typing import ArrayLike
 from ._validation import cast_floats, check_array
@@ -132,19 +131,19 @@ class DiscreteDynamics(eqx.Module):
         """``(x_{k+1}, StepInfo)``: the step's result code and residual."""
         u0, u1 = jnp.asarray(u0, x.dtype), jnp.asarray(u1, x.dtype)
         state = self.unpack(x, u0)
-        state, info = _tracing.step(self.integrator, self.system, self.h, state, self.stage_controls(u0, u1))
+        state, info = self.integrator.step(self.system, self.h, state, self.stage_controls(u0, u1))
         return self.pack(state), info
 
     def observe(self, x: Float[Array, " n"], u: ArrayLike) -> Observation:
         """The node held by ``x``: configuration, velocity (from the momenta for RDP) and the
         diagnostics, with ``u`` the controls at the node."""
         u = jnp.asarray(u, x.dtype)
-        return _tracing.observe(self.integrator, self.system, self.unpack(x, u), u)
+        return self.integrator.observe(self.system, self.unpack(x, u), u)
 
     def node(self, x: Float[Array, " n"], u: ArrayLike) -> tuple[Array, Array]:
         """``(q, qdot)`` held by ``x`` (no diagnostics: the light path for costs and constraints)."""
         u = jnp.asarray(u, x.dtype)
-        return _tracing.node(self.integrator, self.system, self.unpack(x, u), u)
+        return self.integrator.node(self.system, self.unpack(x, u), u)
 
     def rollout(self, x0: Float[Array, " n"], us: Float[Array, "K n_controls"]) -> Float[Array, "K n"]:
         """States at nodes ``0 .. K-1`` from ``x0`` and the control values ``us`` at the nodes

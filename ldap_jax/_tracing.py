@@ -3,8 +3,10 @@
 A rollout's cost before XLA sees it is mostly JAX tracing and transforming the step: the step is
 traced into the scan body, then differentiated (JVP, partial evaluation, transposition), batched
 and rematerialised. Without a boundary all of that is redone for every program: each step count
-``n_steps`` is a new program, as is each save policy, checkpoint policy and batch size, and a
-control solver traces the same step in its Jacobians, its Hessians and its line search.
+``n_steps`` is a new program, as is each save policy, checkpoint policy and batch size.
+:func:`ldap_jax._rollout.rollout` calls :func:`step` and :func:`observe`. (The discrete dynamics of
+the control solver call the integrator directly: one solve is one program, and the solver's repeat
+time, not its tracing, is what its users wait on.)
 
 :func:`traced_once` puts the step behind an inner ``jax.jit`` whenever it is called under a trace.
 JAX caches that inner program's jaxpr by its signature and caches its JVP, partial evaluation,
@@ -26,7 +28,7 @@ import numpy as np
 
 from ._numerics import plain_active
 
-__all__ = ["traced_once", "step", "observe", "node"]
+__all__ = ["traced_once", "step", "observe"]
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -99,9 +101,3 @@ def step(integrator: Any, system: Any, h: Any, state: Any, c: Any) -> Any:
 def observe(integrator: Any, system: Any, state: Any, c: Any) -> Any:
     """``integrator.observe(system, state, c)``, traced once per signature."""
     return integrator.observe(system, state, c)
-
-
-@traced_once
-def node(integrator: Any, system: Any, state: Any, c: Any) -> Any:
-    """``integrator.node(system, state, c)``, traced once per signature."""
-    return integrator.node(system, state, c)
