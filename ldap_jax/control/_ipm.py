@@ -20,7 +20,10 @@ One iteration follows Wachter and Biegler's IPOPT (Math. Program. 106, 2006), si
   dynamics' curvature ``y^T F''`` (second derivatives by automatic differentiation, of
   ``OCPFunctions.curvature_dynamics`` where given: a cheaper step approximating ``F``), for fast
   local convergence; if its reduced Hessian is not positive definite, ``delta_w I`` is added and the
-  solve repeated (inertia correction);
+  solve repeated (inertia correction); up to two steps of iterative refinement (as IPOPT's) keep
+  the residual of the solve below ``tol / 100``: near the solution the barrier makes the system
+  ill-conditioned, and without them the KKT error stalled at 1e-9 to 2e-8 (the line search then
+  fails), depending on how the code generation rounds;
 * the fraction-to-the-boundary rule keeps the iterates strictly inside the bounds;
 * a backtracking line search with IPOPT's filter (constraint violation ``theta``, barrier
   objective ``phi``) globalises;
@@ -336,7 +339,9 @@ def ipm_solve(fns: OCPFunctions, chi: Array, v: Array, lo: Array, hi: Array, opt
         shapes = jax.eval_shape(factor_with, zero)
         empty = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
         delta, fac, _ = jax.lax.while_loop(reg_cond, reg_body, (zero, empty, jnp.zeros((), jnp.int32)))
-        sol = riccati_apply(fac, w, d.defects, g[-1], d.cK)
+        # iterative refinement keeps the solve's residual, which enters the next iterate's KKT
+        # error directly, two orders below the tolerance
+        sol = riccati_apply(fac, w, d.defects, g[-1], d.cK, refine=2, atol=1e-2 * tol)
         reg_ok = fac.positive & jnp.all(jnp.isfinite(sol.dx))
         dchi, dv = sol.dx[1:], sol.dv
         # bound multipliers: zeta + dzeta = mu / s - Sigma ds

@@ -59,8 +59,11 @@ class QPSolution(NamedTuple):
 
 
 class Factor(NamedTuple):
-    """What :func:`riccati_factor` computes from the matrices."""
+    """What :func:`riccati_factor` computes from the matrices (and the matrices ``W``, ``Z``,
+    ``QK``, ``C`` themselves, for the residuals of :func:`riccati_apply`'s refinement)."""
 
+    W: Float[Array, "K nm nm"]
+    QK: Float[Array, "n n"]
     Z: Float[Array, "K n nm"]
     K: Float[Array, "K m n"]  # feedback gains
     Hinv: Float[Array, "K m m"]  # inverses of H_j
@@ -147,6 +150,8 @@ def riccati_factor(W: Array, Z: Array, QK: Array, C: Array, delta_c: Array) -> F
         else jnp.zeros((0, 0), dtype)
     )
     return Factor(
+        W=W,
+        QK=QK,
         Z=Z,
         K=K,
         Hinv=Hinv,
@@ -162,8 +167,76 @@ def riccati_factor(W: Array, Z: Array, QK: Array, C: Array, delta_c: Array) -> F
     )
 
 
-def riccati_apply(f: Factor, w: Array, e: Array, qK: Array, c: Array) -> QPSolution:
-    """The right-hand-side phase: linear in ``(w, e, qK, c)``."""
+def kkt_residual(f: Factor, w: Array, e: Array, qK: Array, c: Array, sol: QPSolution):
+    """The residual of the QP's optimality conditions at ``sol``, in the shape of its right-hand
+    side ``(w, e, q_K, c)`` (zero at the exact solution): stationarity of the Lagrangian
+    ``sum_j [z_j^T W_j z_j / 2 + w_j^T z_j + y_j^T (Z_j z_j + e_j - dx_{j+1})] + dx_K^T Q_K dx_K / 2
+    + q_K^T dx_K + nu^T (C dx_K + c)`` in ``z_j = (dx_j, dv_j)`` (``j >= 1`` for ``dx_j``, which is
+    fixed at ``j = 0``) and in ``dx_K``, and the constraints."""
+    n = qK.shape[0]
+    dx, dv, y, nu = sol
+    z = jnp.concatenate([dx[:-1], dv], axis=1)
+    prev = jnp.concatenate([jnp.zeros((1, n), y.dtype), y[:-1]])
+    r_w = (
+        jnp.einsum("jab,jb->ja", f.W, z)
+        + w
+        + jnp.einsum("jab,ja->jb", f.Z, y)
+        - jnp.pad(prev, ((0, 0), (0, z.shape[1] - n)))
+    )
+    r_w = r_w.at[0, :n].set(0.0)
+    r_e = jnp.einsum("jab,jb->ja", f.Z, z) + e - dx[1:]
+    r_q = f.QK @ dx[-1] + qK - y[-1] + f.C.T @ nu
+    r_c = f.C @ dx[-1] + c
+    return r_w, r_e, r_q, r_c
+
+
+def riccati_apply(
+    f: Factor, w: Array, e: Array, qK: Array, c: Array, refine: int = 0, atol: Array | float = 0.0
+) -> QPSolution:
+    """The right-hand-side phase: linear in ``(w, e, qK, c)``.
+
+    ``refine``: at most this many steps of iterative refinement: while the residual of the
+    solution (:func:`kkt_residual`, max norm) exceeds ``atol``, solve for it with the same factors
+    and add the correction, as long as that reduces the residual (on a system too ill-conditioned
+    for its factors refinement diverges; the best solution is kept). The systems of a converging
+    interior-point method are ill-conditioned (the barrier's ``zeta / slack`` grows like
+    ``1 / mu`` on active bounds), and their residual perturbs the next iterate's KKT error
+    directly. With ``refine > 0`` the result is not reverse-differentiable (a ``while_loop``)."""
+    sol = _apply(f, w, e, qK, c)
+    if not refine:
+        return sol
+    res = kkt_residual(f, w, e, qK, c, sol)
+
+    def cond(carry):
+        _, _, size, k = carry
+        return (k < refine) & (size > atol)
+
+    def body(carry):
+        s, r, size, k = carry
+        s_new = jax.tree_util.tree_map(jnp.add, s, _apply(f, *r))
+        r_new = kkt_residual(f, w, e, qK, c, s_new)
+        size_new = _max_abs(r_new)
+        better = size_new < size  # a correction that does not reduce the residual is not taken
+
+        def keep(new, old):
+            return jax.tree_util.tree_map(lambda x, y: jnp.where(better, x, y), new, old)
+
+        return (
+            keep(s_new, s),
+            keep(r_new, r),
+            jnp.where(better, size_new, size),
+            jnp.where(better, k + 1, refine),
+        )
+
+    return jax.lax.while_loop(cond, body, (sol, res, _max_abs(res), jnp.zeros((), jnp.int32)))[0]
+
+
+def _max_abs(tree) -> Array:
+    """The largest absolute entry of the arrays of ``tree`` (0 if all are empty)."""
+    return jnp.max(jnp.stack([jnp.max(jnp.abs(x), initial=0.0) for x in jax.tree_util.tree_leaves(tree)]))
+
+
+def _apply(f: Factor, w: Array, e: Array, qK: Array, c: Array) -> QPSolution:
     n = qK.shape[0]
     dtype = qK.dtype
 
