@@ -237,15 +237,28 @@ def compiler_options() -> dict[str, Any] | None:
     return None if _options is None else dict(_options)
 
 
-def _batched_at_top_level() -> bool:
-    """True inside ``jax.vmap`` (possibly nested) with no ``jit`` or other staging trace around it:
-    the batched program then runs as a top-level one and may carry compile options."""
+def _traced(args: Any) -> bool:
+    """True if a leaf of ``args`` is a JAX tracer."""
+    from jax._src import core
+
+    return any(isinstance(x, core.Tracer) for x in jax.tree_util.tree_leaves(args))
+
+
+def _runs_at_top_level(args: Any) -> bool:
+    """True if a program called with ``args`` here runs as a top-level one (and may carry compile
+    options): inside ``jax.vmap`` (possibly nested) with no ``jit`` or other staging trace around
+    it, whose batched program runs at the top; or inside differentiation (``jax.grad``,
+    ``jax.jvp``, again with nothing staging around it) when no argument is traced, so that JAX
+    calls the program on its values as it is (the same program as outside, compiled once)."""
     try:
         from jax._src import core
-        from jax._src.interpreters import batching
+        from jax._src.interpreters import ad, batching
 
+        concrete = not _traced(args)
         trace = core.trace_ctx.trace
-        while isinstance(trace, batching.BatchTrace):
+        while isinstance(trace, batching.BatchTrace) or (
+            concrete and isinstance(trace, (ad.JVPTrace, ad.LinearizeTrace))
+        ):
             trace = trace.parent_trace
         return isinstance(trace, core.EvalTrace)
     except (ImportError, AttributeError):  # pragma: no cover - a future JAX: no options
@@ -253,11 +266,13 @@ def _batched_at_top_level() -> bool:
 
 
 class _Jit:
-    """``equinox.filter_jit(fun)``; called outside any JAX trace or under a top-level
-    ``jax.vmap`` (whose batched program runs as a top-level one), compiled with
-    :func:`compiler_options`. JAX accepts compile options only on a top-level program: inside a
-    user's ``jit`` or ``grad`` the program is the user's and compiles with its options.
-    Attributes (``lower``, equinox's ``_cached``) are the top-level wrapper's."""
+    """``equinox.filter_jit(fun)``; called outside any JAX trace, under a top-level ``jax.vmap``
+    (whose batched program runs as a top-level one) or on plain values under a top-level
+    ``jax.grad``/``jax.vmap`` (then run outside those traces: the same program as a call outside
+    them, compiled once), compiled with :func:`compiler_options`. JAX accepts compile options only
+    on a top-level program: inside a user's ``jit``, or on arguments a ``grad`` traces, the
+    program is the user's and compiles with its options. Attributes (``lower``, equinox's
+    ``_cached``) are the top-level wrapper's."""
 
     def __init__(self, fun: Callable):
         self._fun = fun
@@ -273,10 +288,18 @@ class _Jit:
         return self._top
 
     def __call__(self, *args, **kwargs):
-        if _tracing() and not _batched_at_top_level():
-            if self._nested is None:
-                self._nested = eqx.filter_jit(self._fun)
-            return self._nested(*args, **kwargs)
+        if _tracing():
+            if not _runs_at_top_level((args, kwargs)):
+                if self._nested is None:
+                    self._nested = eqx.filter_jit(self._fun)
+                return self._nested(*args, **kwargs)
+            if not _traced((args, kwargs)):
+                # plain values under a grad or vmap: the program runs on them as it is, so run it
+                # outside those traces (their rules would re-trace it as a new program)
+                from jax._src import core
+
+                with core.set_current_trace(core.eval_trace):
+                    return self._build()(*args, **kwargs)
         return self._build()(*args, **kwargs)
 
     def __getattr__(self, name):
@@ -286,8 +309,8 @@ class _Jit:
 
 
 def jit(fun: Callable) -> Callable:
-    """``equinox.filter_jit(fun)`` compiled with :func:`compiler_options` when called outside
-    any JAX trace or under a top-level ``jax.vmap`` (decided at the first call, so importing the
+    """``equinox.filter_jit(fun)`` compiled with :func:`compiler_options` when its program runs at
+    the top level (see :class:`_Jit`; the options are decided at the first call, so importing the
     library does not start JAX's backend). Arrays are traced, everything else is static, exactly
     as with ``filter_jit``."""
     return _Jit(fun)

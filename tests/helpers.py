@@ -13,6 +13,7 @@ organised around compiled programs and their results:
 
 from __future__ import annotations
 
+import contextlib
 import functools
 from typing import Any, NamedTuple
 
@@ -95,6 +96,25 @@ def maneuvers(system, n, seed=0):
 @eqx.filter_jit
 def _sample(system, keys):
     return jax.vmap(system.sample_maneuver)(keys)
+
+
+@contextlib.contextmanager
+def compiled_programs():
+    """Yield a list that collects the names of the programs XLA compiles inside the block
+    (e.g. ``"jit(_run)"``)."""
+    from jax._src import monitoring
+
+    names: list[str] = []
+
+    def listen(event, duration, **kwargs):
+        if event == "/jax/core/compile/backend_compile_duration":
+            names.append(kwargs.get("fun_name"))
+
+    monitoring.register_event_duration_secs_listener(listen)
+    try:
+        yield names
+    finally:
+        monitoring.unregister_event_duration_listener(listen)
 
 
 def index(tree, i):

@@ -4,6 +4,7 @@ import sys
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import pytest
 from helpers import maneuvers, systems
 
@@ -54,12 +55,13 @@ def test_compiler_options_top_level_and_nested(monkeypatch):
     assert float(jnp.abs(jax.jit(final_x)(q0) - top)) < 1e-15
     assert float(jnp.max(jnp.abs(jax.vmap(final_x)(jnp.zeros((2, 5))) - top))) < 1e-15
     assert float(jax.grad(final_x)(q0)[0]) == pytest.approx(1.0, abs=1e-12)  # x_N = x_0 + ...
-    # where the options apply: at the top level and under a top-level vmap (the batched program
-    # runs as a top-level one), not inside a user's jit or grad
+    # where the options apply: at the top level, under a top-level vmap (the batched program
+    # runs as a top-level one) and on concrete arguments under a top-level grad (JAX calls the
+    # program as it is), not inside a user's jit or on arguments a grad traces
     seen = []
 
-    def where(x):
-        seen.append(cc._batched_at_top_level())
+    def where(x, args=None):
+        seen.append(cc._runs_at_top_level(x if args is None else args))
         return x
 
     jax.vmap(jax.vmap(where))(jnp.zeros((2, 2)))
@@ -67,7 +69,11 @@ def test_compiler_options_top_level_and_nested(monkeypatch):
     jax.vmap(jax.jit(where))(jnp.zeros(2))
     jax.grad(where)(1.0)
     jax.vmap(jax.grad(where))(jnp.zeros(2))
-    assert seen == [True, False, False, False, False]
+    jax.grad(lambda x: where(x, np.ones(2)))(1.0)
+    jax.grad(lambda x: where(x, jax.lax.stop_gradient(x)))(1.0)
+    jax.jit(jax.grad(lambda x: where(x, np.ones(2))))(1.0)
+    jax.jit(lambda x: where(x, np.ones(2)))(1.0)
+    assert seen == [True, False, False, False, False, True, True, False, False]
     monkeypatch.setattr(cc, "_options", cc._UNSET)
     monkeypatch.setenv("LDAP_JAX_FAST_COMPILE", "0")
     assert lj.compiler_options() is None

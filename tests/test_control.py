@@ -8,6 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
+from helpers import compiled_programs
 
 import ldap_jax as lj
 from ldap_jax import control as lc
@@ -268,7 +269,8 @@ def small_park():
 
 def test_sensitivities_match_finite_differences_of_resolves(small_park):
     """d(optimal effort)/d(goal, mass) and d(optimal controls)/d(goal) by the implicit function
-    theorem, in forward and reverse mode, against central differences of re-solves (rtol 1e-4)."""
+    theorem, in forward and reverse mode, against central differences of re-solves (rtol 1e-4),
+    without compiling the interior-point run again."""
     task, p0 = small_park
 
     def optimum(goal, m):
@@ -276,8 +278,13 @@ def test_sensitivities_match_finite_differences_of_resolves(small_park):
         return sol.cost, sol.params[10]
 
     g0, m0 = task.goal, jnp.asarray(1.0)
-    dcost = jax.grad(lambda g, m: optimum(g, m)[0], argnums=(0, 1))(g0, m0)
-    dparams = jax.jacfwd(lambda g: optimum(g, m0)[1])(g0)
+    optimum(g0, m0)
+    with compiled_programs() as names:
+        dcost = jax.grad(lambda g, m: optimum(g, m)[0], argnums=(0, 1))(g0, m0)
+        dparams = jax.jacfwd(lambda g: optimum(g, m0)[1])(g0)
+    # the interior-point run is the program the solve above compiled: derivatives compile only
+    # the implicit-function-theorem step
+    assert "jit(_finish)" in names and not {"jit(_run)", "jit(_solve)"} & set(names), names
     eps = 1e-4
     for i in range(3):
         e = jnp.zeros(3).at[i].set(eps)
