@@ -75,7 +75,7 @@ class OCPFunctions(NamedTuple):
 
 class IPMOptions(NamedTuple):
     tol: float = 1e-8
-    max_iterations: int = 200
+    max_iterations: int = 1000
     mu0: float = 0.1
     kappa_eps: float = 10.0
     tau_min: float = 0.99
