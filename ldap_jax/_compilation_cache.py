@@ -298,8 +298,10 @@ class _Jit:
                 # outside those traces (their rules would re-trace it as a new program)
                 from jax._src import core
 
-                with core.set_current_trace(core.eval_trace):
-                    return self._build()(*args, **kwargs)
+                outside = getattr(core, "set_current_trace", None)
+                if outside is not None and hasattr(core, "eval_trace"):  # else: a future JAX
+                    with outside(core.eval_trace):
+                        return self._build()(*args, **kwargs)
         return self._build()(*args, **kwargs)
 
     def __getattr__(self, name):
