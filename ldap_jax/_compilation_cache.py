@@ -238,23 +238,26 @@ def compiler_options() -> dict[str, Any] | None:
 
 
 def _traced(args: Any) -> bool:
-    """True if a leaf of ``args`` is a JAX tracer."""
-    from jax._src import core
-
+    """True if a leaf of ``args`` is a JAX tracer (also if JAX's core cannot be read: a future JAX)."""
+    try:
+        from jax._src import core
+    except ImportError:  # pragma: no cover
+        return True
     return any(isinstance(x, core.Tracer) for x in jax.tree_util.tree_leaves(args))
 
 
-def _runs_at_top_level(args: Any) -> bool:
+def _runs_at_top_level(args: Any, traced: bool | None = None) -> bool:
     """True if a program called with ``args`` here runs as a top-level one (and may carry compile
     options): inside ``jax.vmap`` (possibly nested) with no ``jit`` or other staging trace around
     it, whose batched program runs at the top; or inside differentiation (``jax.grad``,
     ``jax.jvp``, again with nothing staging around it) when no argument is traced, so that JAX
-    calls the program on its values as it is (the same program as outside, compiled once)."""
+    calls the program on its values as it is (the same program as outside, compiled once).
+    ``traced``: :func:`_traced` of ``args`` if the caller has it."""
     try:
         from jax._src import core
         from jax._src.interpreters import ad, batching
 
-        concrete = not _traced(args)
+        concrete = not (_traced(args) if traced is None else traced)
         trace = core.trace_ctx.trace
         while isinstance(trace, batching.BatchTrace) or (
             concrete and isinstance(trace, (ad.JVPTrace, ad.LinearizeTrace))
@@ -289,11 +292,12 @@ class _Jit:
 
     def __call__(self, *args, **kwargs):
         if _tracing():
-            if not _runs_at_top_level((args, kwargs)):
+            traced = _traced((args, kwargs))
+            if not _runs_at_top_level((args, kwargs), traced):
                 if self._nested is None:
                     self._nested = eqx.filter_jit(self._fun)
                 return self._nested(*args, **kwargs)
-            if not _traced((args, kwargs)):
+            if not traced:
                 # plain values under a grad or vmap: the program runs on them as it is, so run it
                 # outside those traces (their rules would re-trace it as a new program)
                 from jax._src import core
