@@ -104,6 +104,22 @@ def test_solve_meets_the_constraints_on_the_reference(name, car_solutions):
         assert max(np.max(np.abs(q_ref[:, 1])) / 0.5, np.max(np.abs(q_ref[:, 4])) / 1.0) > 0.999
 
 
+def test_failed_line_search_far_from_feasibility_restarts_and_converges(car_solutions):
+    """A U-turn goal (one of 16 random goals around the task's) on which the iterate jams against
+    the lane bound and the line search fails far from feasibility (the release before the restart
+    stopped there, violation 0.49): the restart pushes the point inside the bounds, resets the
+    multipliers, and the solve converges to a solution that holds on the reference."""
+    task, _ = car_solutions["u_turn"]
+    task = task.with_options(goal=jnp.array([-0.1202, 0.2345, 2.8586]))
+    sol = lc.solve(task)
+    assert int(sol.resets) >= 1
+    assert bool(sol.converged), lc.SOLVER_RESULTS[sol.result]
+    assert float(sol.max_violation) < 1e-8
+    rp = lc.replay(task, sol.params)
+    assert rp["final_position_error"] < 1e-6 and rp["final_heading_error"] < 1e-6, rp
+    assert rp["max_bound_violation"] < 1e-8
+
+
 def test_solve_cost_is_the_effort_and_far_below_the_guess(car_solutions):
     """The reported cost is the task's effort term (without its penalty-form weight), and the
     solution's penalty-form loss is far below the default guess's."""
