@@ -207,6 +207,20 @@ def _random_qp(seed, K=12, n=4, m=2, p=2, stiff=0.0, near_identity=False):
     )
 
 
+def test_bound_push_moves_points_inside_one_and_two_sided_bounds():
+    """The push that places the initial guess (and a restarted iterate) strictly inside the bounds:
+    one-sided bounds (lower only, upper only) are honoured as well as two-sided ones, a point well
+    inside is left alone, and unbounded entries are untouched."""
+    from ldap_jax.control._ipm import _pushed
+
+    inf = np.inf
+    lo = jnp.array([0.0, -inf, -1.0, -1.0, -inf, 100.0])
+    hi = jnp.array([inf, 2.0, 1.0, 1.0, inf, inf])
+    x = jnp.array([-3.0, 5.0, 1.0, 0.2, 7.0, 100.0])
+    out = np.asarray(_pushed(x, lo, hi, 1e-2))
+    np.testing.assert_allclose(out, [1e-2, 2.0 - 2e-2, 1.0 - 1e-2, 0.2, 7.0, 101.0], rtol=0, atol=1e-15)
+
+
 def test_riccati_solves_the_qp_and_refinement_reduces_the_residual():
     """The Riccati recursion's step equals a dense solve of the QP's full KKT system; on a system
     with 1e10 barrier terms, each step of iterative refinement reduces the stationarity residual

@@ -241,6 +241,20 @@ def _multiplier_step(z, dz, tau):
     return jnp.minimum(1.0, jnp.min(jnp.where(dz < 0, -tau * z / jnp.where(dz < 0, dz, -1.0), 1.0)))
 
 
+def _pushed(x: Array, lo: Array, hi: Array, push: float) -> Array:
+    """``x`` moved inside the bounds by IPOPT's bound push: at least ``push max(1, |bound|)`` from
+    each finite bound, and at most half of ``push`` times the width of a two-sided interval."""
+    has_lo, has_hi = jnp.isfinite(lo), jnp.isfinite(hi)
+    width = jnp.where(has_lo & has_hi, hi - lo, jnp.inf)
+    lo_in = jnp.where(
+        has_lo, lo + jnp.minimum(push * jnp.maximum(1.0, jnp.abs(lo)), 0.5 * push * width), -jnp.inf
+    )
+    hi_in = jnp.where(
+        has_hi, hi - jnp.minimum(push * jnp.maximum(1.0, jnp.abs(hi)), 0.5 * push * width), jnp.inf
+    )
+    return jnp.minimum(jnp.maximum(x, lo_in), hi_in)
+
+
 #: restarts after a failed line search far from feasibility before the method gives up
 MAX_RESETS = 5
 
@@ -255,14 +269,9 @@ def ipm_solve(fns: OCPFunctions, chi: Array, v: Array, lo: Array, hi: Array, opt
     lo = jnp.broadcast_to(lo, chi.shape)
     hi = jnp.broadcast_to(hi, chi.shape)
     has_lo, has_hi = jnp.isfinite(lo), jnp.isfinite(hi)
-    # push the guess strictly inside the bounds (IPOPT's bound_push)
-    push = options.bound_push
-    width = jnp.where(has_lo & has_hi, hi - lo, jnp.inf)
-    push_lo = lo + jnp.minimum(push * jnp.maximum(1.0, jnp.abs(lo)), 0.5 * push * width)
-    push_hi = hi - jnp.minimum(push * jnp.maximum(1.0, jnp.abs(hi)), 0.5 * push * width)
 
-    def pushed(c):
-        return jnp.where(has_hi, jnp.minimum(jnp.where(has_lo, jnp.maximum(c, push_lo), c), push_hi), c)
+    def pushed(c):  # strictly inside the bounds (IPOPT's bound_push)
+        return _pushed(c, lo, hi, options.bound_push)
 
     chi = pushed(chi)
     mu0 = jnp.asarray(options.mu0, dtype)
