@@ -17,6 +17,9 @@ as equalities, bounds at the nodes):
   one solve;
 * the derivative of the optimal effort with respect to the goal by the implicit function theorem
   against central differences of re-solves;
+* optionally (``--robustness 0,1,2``) robustness away from the three goals: for each seed, 16
+  random goals around each task's (uniform offsets up to ``GOAL_OFFSETS``), solved from the
+  default guess in one vmapped call per task: how many converge, how many needed a restart;
 * optionally (``--cache``) the first call in a new process with JAX's persistent compilation
   cache warm (``lj.enable_compilation_cache``).
 
@@ -40,6 +43,8 @@ import time
 jax = jnp = np = lj = lc = cb = None
 
 TASK_NAMES = ("parallel_park", "u_turn", "reach")
+#: largest offsets (x [m], y [m], heading [rad]) of the random goals of ``--robustness``
+GOAL_OFFSETS = {"parallel_park": (0.5, 0.3, 0.4), "u_turn": (0.3, 0.1, 0.3), "reach": (1.0, 0.7, 0.8)}
 TASK_FACTORIES: dict = {}  # name -> lc.parallel_park, ... (filled by _load)
 INTEGRATORS = {
     "rdp2": lambda: lj.RDP(),
@@ -78,6 +83,16 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _seeds(text: str) -> tuple[int, ...]:
+    try:
+        seeds = tuple(int(t) for t in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be comma-separated integers, got {text!r}") from None
+    if any(x < 0 for x in seeds):
+        raise argparse.ArgumentTypeError(f"seeds must be non-negative, got {text!r}")
+    return seeds
+
+
 @dataclasses.dataclass(frozen=True)
 class Config:
     """Settings of a run (``--quick`` shrinks them)."""
@@ -89,6 +104,8 @@ class Config:
     batch_task: str = "parallel_park"
     tol: float = 1e-8
     cache: bool = False
+    robustness: tuple[int, ...] = ()
+    goals: int = 16
     out: str = "results"
 
 
@@ -185,6 +202,42 @@ def batched(cfg: Config, log) -> dict:
         f"{row['converged']}/{cfg.batch} converged"
     )
     return row
+
+
+def robustness(cfg: Config, log) -> list[dict]:
+    """For each seed and task: ``cfg.goals`` random goals around the task's (NumPy's generator,
+    uniform offsets up to ``GOAL_OFFSETS``), one vmapped ``lc.solve`` from the default guess."""
+    rows = []
+    for seed in cfg.robustness:
+        for name in cfg.tasks:
+            task = TASK_FACTORIES[name](integrator=INTEGRATORS[cfg.integrator]())
+            rng = np.random.default_rng(seed)
+            offsets = rng.uniform(-1.0, 1.0, (cfg.goals, 3)) * np.asarray(GOAL_OFFSETS[name])
+            goals = jnp.asarray(np.asarray(task.goal) + offsets)
+            p0 = task.init()
+            t = time.perf_counter()
+            sols = jax.block_until_ready(
+                jax.vmap(lambda g, task=task, p0=p0: lc.solve(task.with_options(goal=g), p0, tol=cfg.tol))(
+                    goals
+                )
+            )
+            converged = np.asarray(sols.converged)
+            row = dict(
+                seed=seed,
+                task=name,
+                goals=cfg.goals,
+                converged=int(np.sum(converged)),
+                restarted=int(np.sum(np.asarray(sols.resets) > 0)),
+                max_iterations=int(np.max(np.asarray(sols.iterations))),
+                max_violation_converged=float(np.max(np.asarray(sols.max_violation)[converged], initial=0.0)),
+                seconds=time.perf_counter() - t,
+            )
+            log(
+                f"  seed {seed} {name}: {row['converged']}/{cfg.goals} converged, {row['restarted']} "
+                f"restarted, up to {row['max_iterations']} iterations ({row['seconds']:.1f} s)"
+            )
+            rows.append(row)
+    return rows
 
 
 def sensitivity(cfg: Config, log) -> dict:
@@ -287,6 +340,22 @@ def markdown(res: dict) -> str:
             f"Sensitivity of the optimal effort to the goal (implicit function theorem vs central "
             f"differences of re-solves): max relative difference {s['max_relative_difference']:.1e}.",
         ]
+    rob = res.get("robustness")
+    if rob:
+        lines += [
+            "",
+            "Robustness: random goals around each task's (uniform offsets up to "
+            + "; ".join(f"{k} {v}" for k, v in GOAL_OFFSETS.items() if any(r["task"] == k for r in rob))
+            + "), default guess, one vmapped call per task and seed.",
+            "",
+            "| seed | task | converged | restarted | most iterations | largest violation (converged) |",
+            "|---|---|---|---|---|---|",
+            *(
+                f"| {r['seed']} | {r['task']} | {r['converged']}/{r['goals']} | {r['restarted']} | "
+                f"{r['max_iterations']} | {r['max_violation_converged']:.1e} |"
+                for r in rob
+            ),
+        ]
     for w in res.get("warm", []):
         lines += [
             "",
@@ -313,6 +382,12 @@ def parse_args(argv=None):
     p.add_argument(
         "--cache", action="store_true", help="also time the first call with a warm persistent cache"
     )
+    p.add_argument(
+        "--robustness",
+        type=_seeds,
+        default=(),
+        help="comma-separated seeds: also solve 16 random goals around each task per seed (e.g. 0,1,2)",
+    )
     args = p.parse_args(argv)
     out = pathlib.Path(args.out)
     if out.exists() and not out.is_dir():
@@ -334,6 +409,7 @@ def main(argv=None) -> int:
         repeats=args.repeats,
         batch=16 if args.quick else 64,
         cache=args.cache,
+        robustness=args.robustness,
         out=str(out),
     )
     t0 = time.perf_counter()
@@ -357,6 +433,9 @@ def main(argv=None) -> int:
     res["batch"] = batched(cfg, log)
     log("sensitivity")
     res["sensitivity"] = sensitivity(cfg, log)
+    if cfg.robustness:
+        log("robustness")
+        res["robustness"] = robustness(cfg, log)
     if cfg.cache:
         res["warm"] = [warm_first_call(name, log) for name in cfg.tasks[:1]]
     res["total_s"] = time.perf_counter() - t0

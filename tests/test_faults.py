@@ -922,6 +922,8 @@ SCRIPT_CASES = {
     "bench_control --repeats x": ("bench_control.py", ["--repeats", "x"], "--repeats"),
     "bench_control --out file": ("bench_control.py", ["--out", FILE], "--out"),
     "bench_control --integrator rk5": ("bench_control.py", ["--integrator", "rk5"], "--integrator"),
+    "bench_control --robustness 0,x": ("bench_control.py", ["--robustness", "0,x"], "--robustness"),
+    "bench_control --robustness -1": ("bench_control.py", ["--robustness=-1"], "--robustness"),
 }
 
 
