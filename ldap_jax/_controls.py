@@ -63,6 +63,14 @@ class AbstractControls(eqx.Module):
         fails that trajectory with ``RESULTS.invalid_input``."""
         return ()
 
+    def breakpoints(self) -> Float[Array, " B"] | None:
+        """The times at which the control or one of its derivatives jumps (``None``: smooth).
+
+        :func:`ldap_jax.reference` steps onto them (diffrax's ``jump_ts``): an adaptive solver's
+        error estimate does not see a kink between two stages, and stepping across one costs it
+        the order of the method there."""
+        return None
+
     def derivative(self, t: ArrayLike) -> Float[Array, " n_channels"]:
         """``d/dt controls(t)`` by forward-mode autodiff."""
         t = jnp.asarray(t)
@@ -171,6 +179,11 @@ class Sampled(AbstractControls):
     @property
     def n_channels(self) -> int:
         return self.values.shape[-1]
+
+    def breakpoints(self):
+        """The sample times: the interpolant's slope jumps there."""
+        n = self.values.shape[0]
+        return self.t0 + (self.t_final - self.t0) * jnp.arange(n, dtype=self.values.dtype) / (n - 1)
 
     def __call__(self, t):
         n = self.values.shape[0]
