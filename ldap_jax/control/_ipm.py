@@ -109,7 +109,7 @@ class IPMState(NamedTuple):
     error: Float[Array, ""]
     violation: Float[Array, ""]  # largest constraint violation (max norm) at chi, v
     held: Bool[Array, ""]  # the last iteration updated only the multipliers (see ``step``)
-    resets: Int[Array, ""]  # multiplier resets after failed line searches (see ``step``)
+    resets: Int[Array, ""]  # restarts after failed line searches far from feasibility (``step``)
     result: SOLVER_RESULTS
 
 
@@ -411,13 +411,6 @@ def ipm_solve(fns: OCPFunctions, chi: Array, v: Array, lo: Array, hi: Array, opt
         a_dual = jnp.where(hold, 1.0, alpha)
         entry = jnp.stack([(1 - 1e-5) * theta0, phi0 - 1e-8 * theta0])
         filt = jnp.where(ls_ok & ~f_type, jnp.concatenate([entry[None], filt[:-1]]), filt)
-        new_chi = st.chi + alpha * dchi
-        sl_n, su_n = slacks(new_chi)
-        zl = st.zl + a_z * dzl
-        zu = st.zu + a_z * dzu
-        # keep the bound multipliers within IPOPT's kappa_Sigma corridor around mu / slack
-        zl = jnp.where(has_lo, jnp.clip(zl, mu / (1e10 * sl_n), 1e10 * mu / sl_n), 0.0)
-        zu = jnp.where(has_hi, jnp.clip(zu, mu / (1e10 * su_n), 1e10 * mu / su_n), 0.0)
         # A failed line search far from feasibility: in the U-turns we traced, an iterate jammed
         # against the lane and steering bounds near the end: the linearised dynamics ask for a
         # step through a bound, the fraction to the boundary cuts it to 1e-4..1e-7, and no trial
@@ -426,12 +419,16 @@ def ipm_solve(fns: OCPFunctions, chi: Array, v: Array, lo: Array, hi: Array, opt
         # (bound_push), the bound multipliers restart on the central path (mu / slack), the
         # equality multipliers at 0, the filter empty. On 16 random goals around each task and
         # three seeds this took lc.solve from 132 to 144 of 144 problems; it changes nothing on
-        # problems that converge without it (it acts only where they would have stopped).
-        reset = ~ls_ok & ~hold & (theta0 > theta_min) & (st.resets < MAX_RESETS)
-        new_chi = jnp.where(reset, pushed(st.chi), new_chi)
-        sl_r, su_r = slacks(new_chi)
-        zl = jnp.where(reset, jnp.where(has_lo, mu / sl_r, 0.0), zl)
-        zu = jnp.where(reset, jnp.where(has_hi, mu / su_r, 0.0), zu)
+        # problems that converge without it (it acts only where they would have stopped). (A
+        # hold needs theta0 <= theta_min, so the two never meet.)
+        reset = ~ls_ok & (theta0 > theta_min) & (st.resets < MAX_RESETS)
+        new_chi = jnp.where(reset, pushed(st.chi), st.chi + alpha * dchi)
+        sl_n, su_n = slacks(new_chi)
+        zl = jnp.where(reset, mu / sl_n, st.zl + a_z * dzl)
+        zu = jnp.where(reset, mu / su_n, st.zu + a_z * dzu)
+        # keep the bound multipliers within IPOPT's kappa_Sigma corridor around mu / slack
+        zl = jnp.where(has_lo, jnp.clip(zl, mu / (1e10 * sl_n), 1e10 * mu / sl_n), 0.0)
+        zu = jnp.where(has_hi, jnp.clip(zu, mu / (1e10 * su_n), 1e10 * mu / su_n), 0.0)
         new = st._replace(
             chi=new_chi,
             v=st.v + alpha * dv,
