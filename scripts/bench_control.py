@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import itertools
 import json
 import os
 import pathlib
@@ -205,38 +206,37 @@ def batched(cfg: Config, log) -> dict:
 
 
 def robustness(cfg: Config, log) -> list[dict]:
-    """For each seed and task: ``cfg.goals`` random goals around the task's (NumPy's generator,
-    uniform offsets up to ``GOAL_OFFSETS``), one vmapped ``lc.solve`` from the default guess."""
+    """For each seed, task and guess: ``cfg.goals`` random goals around the task's (NumPy's
+    generator, uniform offsets up to ``GOAL_OFFSETS``), one vmapped ``lc.solve`` from the default
+    guess and one from rest (zero controls)."""
     rows = []
-    for seed in cfg.robustness:
-        for name in cfg.tasks:
-            task = TASK_FACTORIES[name](integrator=INTEGRATORS[cfg.integrator]())
-            rng = np.random.default_rng(seed)
-            offsets = rng.uniform(-1.0, 1.0, (cfg.goals, 3)) * np.asarray(GOAL_OFFSETS[name])
-            goals = jnp.asarray(np.asarray(task.goal) + offsets)
-            p0 = task.init()
-            t = time.perf_counter()
-            sols = jax.block_until_ready(
-                jax.vmap(lambda g, task=task, p0=p0: lc.solve(task.with_options(goal=g), p0, tol=cfg.tol))(
-                    goals
-                )
-            )
-            converged = np.asarray(sols.converged)
-            row = dict(
-                seed=seed,
-                task=name,
-                goals=cfg.goals,
-                converged=int(np.sum(converged)),
-                restarted=int(np.sum(np.asarray(sols.resets) > 0)),
-                max_iterations=int(np.max(np.asarray(sols.iterations))),
-                max_violation_converged=float(np.max(np.asarray(sols.max_violation)[converged], initial=0.0)),
-                seconds=time.perf_counter() - t,
-            )
-            log(
-                f"  seed {seed} {name}: {row['converged']}/{cfg.goals} converged, {row['restarted']} "
-                f"restarted, up to {row['max_iterations']} iterations ({row['seconds']:.1f} s)"
-            )
-            rows.append(row)
+    for seed, name, guess in itertools.product(cfg.robustness, cfg.tasks, ("default", "rest")):
+        task = TASK_FACTORIES[name](integrator=INTEGRATORS[cfg.integrator]())
+        rng = np.random.default_rng(seed)
+        offsets = rng.uniform(-1.0, 1.0, (cfg.goals, 3)) * np.asarray(GOAL_OFFSETS[name])
+        goals = jnp.asarray(np.asarray(task.goal) + offsets)
+        p0 = task.init() if guess == "default" else jnp.zeros((task.n_steps + 1, task.system.n_controls))
+        t = time.perf_counter()
+        sols = jax.block_until_ready(
+            jax.vmap(lambda g, task=task, p0=p0: lc.solve(task.with_options(goal=g), p0, tol=cfg.tol))(goals)
+        )
+        converged = np.asarray(sols.converged)
+        row = dict(
+            seed=seed,
+            task=name,
+            guess=guess,
+            goals=cfg.goals,
+            converged=int(np.sum(converged)),
+            restarted=int(np.sum(np.asarray(sols.resets) > 0)),
+            max_iterations=int(np.max(np.asarray(sols.iterations))),
+            max_violation_converged=float(np.max(np.asarray(sols.max_violation)[converged], initial=0.0)),
+            seconds=time.perf_counter() - t,
+        )
+        log(
+            f"  seed {seed} {name} from {guess}: {row['converged']}/{cfg.goals} converged, "
+            f"{row['restarted']} restarted, up to {row['max_iterations']} iterations ({row['seconds']:.1f} s)"
+        )
+        rows.append(row)
     return rows
 
 
@@ -346,13 +346,15 @@ def markdown(res: dict) -> str:
             "",
             "Robustness: random goals around each task's (uniform offsets up to "
             + "; ".join(f"{k} {v}" for k, v in GOAL_OFFSETS.items() if any(r["task"] == k for r in rob))
-            + "), default guess, one vmapped call per task and seed.",
+            + "), from the default guess and from rest (zero controls), one vmapped call per task, "
+            "guess and seed.",
             "",
-            "| seed | task | converged | restarted | most iterations | largest violation (converged) |",
-            "|---|---|---|---|---|---|",
+            "| seed | task | guess | converged | restarted | most iterations "
+            "| largest violation (converged) |",
+            "|---|---|---|---|---|---|---|",
             *(
-                f"| {r['seed']} | {r['task']} | {r['converged']}/{r['goals']} | {r['restarted']} | "
-                f"{r['max_iterations']} | {r['max_violation_converged']:.1e} |"
+                f"| {r['seed']} | {r['task']} | {r['guess']} | {r['converged']}/{r['goals']} | "
+                f"{r['restarted']} | {r['max_iterations']} | {r['max_violation_converged']:.1e} |"
                 for r in rob
             ),
         ]

@@ -120,6 +120,23 @@ def test_failed_line_search_far_from_feasibility_restarts_and_converges(car_solu
     assert rp["max_bound_violation"] < 1e-8
 
 
+def test_solve_from_rest_restarts_with_perturbed_controls_and_converges(car_solutions):
+    """From zero controls (the car at rest throughout) the linearised car has no authority over
+    its lateral position and heading: the first Newton step is zero and its line search fails. The
+    first restart (the same point pushed inside the bounds) fails the same way; the second perturbs
+    the controls within their bounds, and both car tasks converge to solutions that hold on the
+    reference (the previous release stopped on both after five restarts)."""
+    for name in ("parallel_park", "u_turn"):
+        task, _ = car_solutions[name]
+        sol = lc.solve(task, jnp.zeros((task.n_steps + 1, 2)))
+        assert int(sol.resets) >= 2, name
+        assert bool(sol.converged), (name, lc.SOLVER_RESULTS[sol.result])
+        assert float(sol.max_violation) < 1e-8
+        rp = lc.replay(task, sol.params)
+        assert rp["final_position_error"] < 1e-6 and rp["final_heading_error"] < 1e-6, (name, rp)
+        assert rp["final_speed_ref"] < 1e-6 and rp["max_bound_violation"] < 1e-8, (name, rp)
+
+
 def test_solve_cost_is_the_effort_and_far_below_the_guess(car_solutions):
     """The reported cost is the task's effort term (without its penalty-form weight), and the
     solution's penalty-form loss is far below the default guess's."""
@@ -281,14 +298,19 @@ def test_riccati_solves_the_qp_and_refinement_reduces_the_residual():
 
 
 def test_solve_reach_snakeboard():
+    """From the default guess and from rest (zero torques: the linearised snakeboard has no
+    authority over its position, so this needs the perturbed restart), converged to solutions that
+    reach the goal at rest on the reference, with the torque and steering bounds held."""
     task = lc.reach(integrator=lj.RDP(order=4))
-    sol = lc.solve(task)
-    assert bool(sol.converged), lc.SOLVER_RESULTS[sol.result]
-    rp = lc.replay(task, sol.params)
-    assert rp["final_position_error"] < 1e-6 and rp["final_heading_error"] < 1e-6, rp
-    assert rp["final_speed_ref"] < 1e-6 and rp["max_bound_violation"] < 1e-8
-    c = np.asarray(jax.vmap(task.controls(sol.params))(rp["t"]))
-    assert np.max(np.abs(c)) <= 0.1 + 1e-12
+    for guess in (None, jnp.zeros((task.n_steps + 1, 2))):
+        sol = lc.solve(task, guess)
+        assert bool(sol.converged), lc.SOLVER_RESULTS[sol.result]
+        assert guess is None or int(sol.resets) >= 2
+        rp = lc.replay(task, sol.params)
+        assert rp["final_position_error"] < 1e-6 and rp["final_heading_error"] < 1e-6, rp
+        assert rp["final_speed_ref"] < 1e-6 and rp["max_bound_violation"] < 1e-8
+        c = np.asarray(jax.vmap(task.controls(sol.params))(rp["t"]))
+        assert np.max(np.abs(c)) <= 0.1 + 1e-12
 
 
 @pytest.fixture(scope="module")

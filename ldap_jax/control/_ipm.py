@@ -28,8 +28,9 @@ One iteration follows Wachter and Biegler's IPOPT (Math. Program. 106, 2006), si
 * a backtracking line search with IPOPT's filter (constraint violation ``theta``, barrier
   objective ``phi``) globalises;
 * a line search that fails far from feasibility restarts the iteration from the current point
-  pushed inside its bounds, with the multipliers reset (at most ``MAX_RESETS`` times; a simple
-  stand-in for IPOPT's feasibility restoration, see ``step``);
+  pushed inside its bounds, with the multipliers reset; from the second restart on, the controls
+  are also perturbed within their bounds and the states rolled out from them (at most
+  ``MAX_RESETS`` restarts; a simple stand-in for IPOPT's feasibility restoration, see ``step``);
 * ``mu`` decreases superlinearly (``mu <- min(0.2 mu, mu^1.5)``) once the barrier problem is solved
   to ``10 mu``; the method stops when the scaled KKT error is below ``tol``.
 """
@@ -74,6 +75,10 @@ class OCPFunctions(NamedTuple):
     # (chi, v) -> next chi whose second derivatives stand in for the dynamics' in the Hessian of
     # the Lagrangian (default: ``dynamics`` itself)
     curvature_dynamics: Callable[[Array, Array], Array] | None = None
+    # (v, key, size) -> controls v perturbed within their bounds by ``size`` (a fraction of their
+    # half-width), for a restart from a point where the linearisation gives no direction (see
+    # ``step``); None: restarts never perturb
+    perturbation: Callable[[Array, Array, Array], Array] | None = None
 
 
 class IPMOptions(NamedTuple):
@@ -121,6 +126,18 @@ class _Derivatives(NamedTuple):
     cK: Array  # (p,)
     CK: Array  # (p, n)
     QK: Array  # (n, n): Hessian of l_K + nu^T c (objective part of stage K included)
+
+
+def _rollout(fns: OCPFunctions, v: Array) -> Array:
+    """The states ``chi_1 .. chi_K`` of the controls ``v`` (no defects)."""
+
+    def one(chi, vv):
+        nxt = fns.dynamics(chi, vv)
+        return nxt, nxt
+
+    chi1 = fns.first(v[0])
+    _, rest = jax.lax.scan(one, chi1, v[1:])
+    return jnp.concatenate([chi1[None], rest])
 
 
 def _constraints(fns: OCPFunctions, chi: Array, v: Array) -> tuple[Array, Array]:
@@ -422,7 +439,24 @@ def ipm_solve(fns: OCPFunctions, chi: Array, v: Array, lo: Array, hi: Array, opt
         # problems that converge without it (it acts only where they would have stopped). (A
         # hold needs theta0 <= theta_min, so the two never meet.)
         reset = ~ls_ok & (theta0 > theta_min) & (st.resets < MAX_RESETS)
-        new_chi = jnp.where(reset, pushed(st.chi), st.chi + alpha * dchi)
+        # A restart after the first also perturbs the controls within their bounds and rolls the
+        # states out from them. From rest the snakeboard's linearisation has no authority over its
+        # position: the Newton step is exactly zero, and a restart from the same point fails the
+        # same way (reach from zero controls: five restarts in six iterations, dx = dv = 0 each
+        # time). IPOPT leaves such a point through its restoration phase; a perturbation gives
+        # the linearisation a direction: uniform, 0.25 of the bounds' half-width at the second
+        # restart, growing by 0.25 at each further one.
+        perturb = reset & (st.resets >= 1) if fns.perturbation is not None else false
+
+        def perturbed(_):
+            key = jax.random.fold_in(jax.random.PRNGKey(0), st.resets)
+            v_p = fns.perturbation(st.v, key, 0.25 * st.resets.astype(dtype))
+            return pushed(_rollout(fns, v_p)), v_p
+
+        def continued(_):
+            return jnp.where(reset, pushed(st.chi), st.chi + alpha * dchi), st.v + alpha * dv
+
+        new_chi, new_v = jax.lax.cond(perturb, perturbed, continued, None)
         sl_n, su_n = slacks(new_chi)
         zl = jnp.where(reset, mu / sl_n, st.zl + a_z * dzl)
         zu = jnp.where(reset, mu / su_n, st.zu + a_z * dzu)
@@ -431,7 +465,7 @@ def ipm_solve(fns: OCPFunctions, chi: Array, v: Array, lo: Array, hi: Array, opt
         zu = jnp.where(has_hi, jnp.clip(zu, mu / (1e10 * su_n), 1e10 * mu / su_n), 0.0)
         new = st._replace(
             chi=new_chi,
-            v=st.v + alpha * dv,
+            v=new_v,
             y=jnp.where(reset, 0.0, st.y + a_dual * (sol.y - st.y)),
             nu=jnp.where(reset, 0.0, st.nu + a_dual * (sol.nu - st.nu)),
             zl=zl,

@@ -18,7 +18,16 @@ from .._numerics import plain
 from .._validation import check_array, check_positive_int, check_positive_number, is_concrete
 from ..integrators import RDP, AbstractIntegrator
 from ._costs import Node, TerminalRest, pose_error
-from ._ipm import SOLVER_RESULTS, IPMOptions, IPMState, OCPFunctions, _constraints, _derivatives, ipm_solve
+from ._ipm import (
+    SOLVER_RESULTS,
+    IPMOptions,
+    IPMState,
+    OCPFunctions,
+    _constraints,
+    _derivatives,
+    _pushed,
+    ipm_solve,
+)
 from ._parameterizations import SampledControls
 from ._riccati import riccati_apply, riccati_factor
 from ._tasks import Task
@@ -39,8 +48,9 @@ class Solution(eqx.Module):
             defects, terminal equalities, bounds; bounds are kept strictly by the method).
         kkt_error: the final scaled KKT error.
         result: a :data:`SOLVER_RESULTS` item (``SOLVER_RESULTS[sol.result]`` is the message).
-        resets: how often the method restarted its multipliers after a line search failed far from
-            feasibility (see :mod:`ldap_jax.control._ipm`); 0 on most problems.
+        resets: how often the method restarted after a line search failed far from feasibility
+            (see :mod:`ldap_jax.control._ipm`; from the second restart on with perturbed
+            controls); 0 on most problems, 2 from rest.
         states: the flat states of the discrete dynamics at the nodes, (N + 1, n).
         multipliers: the dynamics multipliers (N + 1, n + n_channels) and the terminal ones (p,).
     """
@@ -137,9 +147,18 @@ def problem_functions(
         return jnp.concatenate(parts) if parts else jnp.zeros((0,), chi.dtype)
 
     inf = jnp.full(n - d, jnp.inf, x0.dtype)
-    lo = jnp.concatenate([task.q_lower.astype(x0.dtype), -inf, task.c_lower / scale])
-    hi = jnp.concatenate([task.q_upper.astype(x0.dtype), inf, task.c_upper / scale])
-    return OCPFunctions(dynamics, first, stage_cost, terminal_cost, terminal, curved), lo, hi
+    v_lo, v_hi = task.c_lower / scale, task.c_upper / scale
+    lo = jnp.concatenate([task.q_lower.astype(x0.dtype), -inf, v_lo])
+    hi = jnp.concatenate([task.q_upper.astype(x0.dtype), inf, v_hi])
+
+    def perturbation(v, key, size):
+        # uniform, ``size`` times the half-width of the control bounds (times 1 where infinite)
+        half = jnp.where(jnp.isfinite(v_hi - v_lo), 0.5 * (v_hi - v_lo), 1.0)[None, :]
+        noise = jax.random.uniform(key, v.shape, v.dtype, -1.0, 1.0)
+        return _pushed(v + size * half * noise, v_lo[None, :], v_hi[None, :], 1e-2)
+
+    fns = OCPFunctions(dynamics, first, stage_cost, terminal_cost, terminal, curved, perturbation)
+    return fns, lo, hi
 
 
 def curvature_integrator(integrator: AbstractIntegrator) -> AbstractIntegrator:
