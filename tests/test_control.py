@@ -459,6 +459,23 @@ def test_optimize_warns_when_the_loss_is_never_finite():
         lc.optimize(lambda p: jnp.sum(p) * jnp.nan, jnp.ones(3), n_iterations=2, optimizer=optax.sgd(0.1))
 
 
+def test_optimize_warns_when_the_loss_never_falls_below_the_guess():
+    """From zero controls the parallel parking car cannot move at first order: the penalty's
+    gradient is exactly zero, L-BFGS stays at the guess and its stopping test holds. The run says
+    so instead of passing the guess off as an optimum; multistart counts the starts concerned, and a
+    start that makes progress raises nothing (the suite turns warnings into errors)."""
+    task = SMALL["parallel_park"]()
+    p0 = jnp.zeros((task.n_steps + 1, 2))
+    assert float(jnp.max(jnp.abs(jax.grad(task.value)(p0)))) == 0.0
+    with pytest.warns(UserWarning, match="never fell below its value at the initial guess"):
+        res = lc.optimize(task.loss, p0, n_iterations=10, chunk=10)
+    np.testing.assert_array_equal(res.params, p0)
+    saddle = lambda p: p[0] ** 2 - p[1] ** 2 + p[2] ** 2  # noqa: E731
+    starts = jnp.array([[0.0, 0.0, 0.0], [1.0, 0.5, 1.0]])
+    with pytest.warns(UserWarning, match="1 of 2 starts: the loss never fell"):
+        lc.multistart(saddle, starts, n_iterations=3, optimizer=optax.sgd(0.1))
+
+
 def test_multistart_vmap_equals_loop():
     task = lc.parallel_park(t_final=10.0, n_steps=20)
     keys = jax.random.split(jax.random.PRNGKey(0), 3)

@@ -141,6 +141,15 @@ def _finish(loss_fn, carry):
     return best, jnp.where(better, last, best_loss)
 
 
+#: the warning of a run whose loss never fell below its initial value
+_NO_PROGRESS = (
+    "the loss never fell below its value at the initial guess, so the result is the initial guess. "
+    "Its gradient may vanish there: from zero controls (at rest) the linearised car and snakeboard have "
+    "no authority over their position, and a gradient method cannot leave; start from a guess that "
+    "moves the system (task.init()), or use lc.solve, which restarts from perturbed controls"
+)
+
+
 def _check_positive_int(name: str, x: Any) -> int:
     return check_positive_int(name, x)
 
@@ -217,7 +226,9 @@ def optimize(
 
     Warns:
         UserWarning: when the loss was never finite (the result is then the initial guess, with
-            ``loss = inf``).
+            ``loss = inf``), or never fell below its initial value (e.g. a zero gradient at the
+            initial guess: the result is then the initial guess, and ``converged`` may be True,
+            since the stopping test only sees the loss stop changing).
     """
     _check_positive_int("n_iterations", n_iterations)
     _check_positive_int("chunk", chunk)
@@ -251,6 +262,8 @@ def optimize(
     losses, aux = losses[:n_run], jax.tree_util.tree_map(lambda x: x[:n_run], aux)
     if not bool(jnp.isfinite(best_loss)):
         warnings.warn("optimize: the loss was never finite; the result is the initial guess", stacklevel=2)
+    elif bool(jnp.isfinite(losses[0])) and not bool(best_loss < losses[0]):
+        warnings.warn(f"optimize: {_NO_PROGRESS}", stacklevel=2)
     return OptimizeResult(
         params=best, loss=best_loss, losses=losses, aux=aux, iterations=n_run, converged=jnp.asarray(done)
     )
@@ -277,6 +290,9 @@ def multistart(
     Returns:
         :class:`OptimizeResult` with a leading batch axis (``params``, ``loss`` (B,),
         ``losses`` (B, n_iterations)); pick the best with :func:`best_of`.
+
+    Warns:
+        UserWarning: as :func:`optimize`, with the number of starts concerned.
     """
     _check_positive_int("n_iterations", n_iterations)
     tol = _check_problem(loss_fn, params0, tol)
@@ -291,6 +307,10 @@ def multistart(
             "result is the initial guess (loss inf)",
             stacklevel=2,
         )
+    stuck = jnp.isfinite(losses[:, 0]) & ~(best_loss < losses[:, 0])
+    if bool(jnp.any(stuck)):
+        n_stuck = int(jnp.sum(stuck))
+        warnings.warn(f"multistart, {n_stuck} of {stuck.size} starts: {_NO_PROGRESS}", stacklevel=2)
     return OptimizeResult(
         params=best, loss=best_loss, losses=losses, aux=aux, iterations=n_iterations, converged=done
     )
