@@ -210,7 +210,8 @@ def optimize(
         params0: initial parameters (a pytree of float arrays).
         n_iterations: largest number of optimizer steps (>= 1).
         optimizer: an optax transformation (default :func:`default_optimizer`, L-BFGS).
-        tol: relative change of the loss below which the run stops (``0``: run all iterations).
+        tol: relative change of the loss at or below which the run stops (``0``: only when the
+            loss does not change at all, e.g. an optimizer that no longer moves).
         chunk: iterations per jitted scan (rounded down to divide ``n_iterations``).
         progress: show a tqdm progress bar.
         description: progress bar label.
