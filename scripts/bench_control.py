@@ -17,9 +17,11 @@ as equalities, bounds at the nodes):
   one solve;
 * the derivative of the optimal effort with respect to the goal by the implicit function theorem
   against central differences of re-solves;
+* ``lc.solve`` also from rest (zero controls, IPOPT's starting point on u_turn and reach);
 * optionally (``--robustness 0,1,2``) robustness away from the three goals: for each seed, 16
   random goals around each task's (uniform offsets up to ``GOAL_OFFSETS``), solved from the
-  default guess in one vmapped call per task: how many converge, how many needed a restart;
+  default guess and from rest in one vmapped call per task and guess: how many converge, how
+  many needed a restart;
 * optionally (``--cache``) the first call in a new process with JAX's persistent compilation
   cache warm (``lj.enable_compilation_cache``).
 

@@ -238,6 +238,40 @@ def test_bound_push_moves_points_inside_one_and_two_sided_bounds():
     np.testing.assert_allclose(out, [1e-2, 2.0 - 2e-2, 1.0 - 1e-2, 0.2, 7.0, 101.0], rtol=0, atol=1e-15)
 
 
+def test_ipm_solves_a_stage_form_without_a_perturbation():
+    """``OCPFunctions.perturbation=None`` (restarts never perturb) is a valid stage form: a double
+    integrator steered to a goal with least effort, under a bound on the speed that the
+    least-effort motion would cross, converges with the dynamics, the goal and the bound met (the
+    release before traced the perturbed branch anyway and failed on the missing function)."""
+    from ldap_jax.control._ipm import SOLVER_RESULTS, IPMOptions, OCPFunctions, _constraints, ipm_solve
+
+    h, K = 0.1, 20
+    A = jnp.array([[1.0, h, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.0]])  # chi = (position, speed, u)
+    B = jnp.array([0.5 * h**2, h, 1.0])
+
+    def dynamics(chi, v):
+        return A @ chi + B * v[0]
+
+    fns = OCPFunctions(
+        dynamics=dynamics,
+        first=lambda v: B * v[0],
+        stage_cost=lambda chi: h * chi[2] ** 2,
+        terminal_cost=lambda chi: jnp.zeros((), chi.dtype),
+        terminal=lambda chi: chi[:2] - jnp.array([1.0, 0.0]),
+    )
+    assert fns.perturbation is None
+    lo = jnp.array([-jnp.inf, -0.6, -jnp.inf])
+    hi = jnp.array([jnp.inf, 0.6, jnp.inf])
+    v0 = jnp.zeros((K, 1))
+    chi0 = jnp.zeros((K, 3))
+    st = jax.jit(lambda c, v: ipm_solve(fns, c, v, lo, hi, IPMOptions(tol=1e-9)))(chi0, v0)
+    assert st.result == SOLVER_RESULTS.successful, int(st.iteration)
+    defects, cK = _constraints(fns, st.chi, st.v)
+    assert float(jnp.max(jnp.abs(defects))) < 1e-10 and float(jnp.max(jnp.abs(cK))) < 1e-10
+    # the least-effort profile would peak at 0.75 m/s: the bound is active and held
+    assert 0.6 - 1e-6 < float(jnp.max(jnp.abs(st.chi[:, 1]))) < 0.6
+
+
 def test_riccati_solves_the_qp_and_refinement_reduces_the_residual():
     """The Riccati recursion's step equals a dense solve of the QP's full KKT system; on a system
     with 1e10 barrier terms, each step of iterative refinement reduces the stationarity residual

@@ -444,6 +444,7 @@ def ipm_solve(fns: OCPFunctions, chi: Array, v: Array, lo: Array, hi: Array, opt
         # problems that converge without it (it acts only where they would have stopped). (A
         # hold needs theta0 <= theta_min, so the two never meet.)
         reset = ~ls_ok & (theta0 > theta_min) & (st.resets < MAX_RESETS)
+
         # A restart after the first also perturbs the controls within their bounds and rolls the
         # states out from them. From rest the snakeboard's linearisation has no authority over its
         # position: the Newton step is exactly zero, and a restart from the same point fails the
@@ -451,8 +452,6 @@ def ipm_solve(fns: OCPFunctions, chi: Array, v: Array, lo: Array, hi: Array, opt
         # time). IPOPT leaves such a point through its restoration phase; a perturbation gives
         # the linearisation a direction: uniform, 0.25 of the bounds' half-width at the second
         # restart, growing by 0.25 at each further one.
-        perturb = reset & (st.resets >= 1) if fns.perturbation is not None else false
-
         def perturbed(_):
             key = jax.random.fold_in(jax.random.PRNGKey(0), st.resets)
             v_p = fns.perturbation(st.v, key, 0.25 * st.resets.astype(dtype))
@@ -461,7 +460,10 @@ def ipm_solve(fns: OCPFunctions, chi: Array, v: Array, lo: Array, hi: Array, opt
         def continued(_):
             return jnp.where(reset, pushed(st.chi), st.chi + alpha * dchi), st.v + alpha * dv
 
-        new_chi, new_v = jax.lax.cond(perturb, perturbed, continued, None)
+        if fns.perturbation is None:  # restarts never perturb
+            new_chi, new_v = continued(None)
+        else:
+            new_chi, new_v = jax.lax.cond(reset & (st.resets >= 1), perturbed, continued, None)
         sl_n, su_n = slacks(new_chi)
         zl = jnp.where(reset, mu / sl_n, st.zl + a_z * dzl)
         zu = jnp.where(reset, mu / su_n, st.zu + a_z * dzu)

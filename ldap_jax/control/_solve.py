@@ -26,6 +26,7 @@ from ._ipm import (
     _constraints,
     _derivatives,
     _pushed,
+    _rollout,
     ipm_solve,
 )
 from ._parameterizations import SampledControls
@@ -282,11 +283,9 @@ def _run(task: Task, params0: Array, options: IPMOptions) -> tuple[IPMState, Arr
     with plain():
         dtype = task.q0.dtype
         params0 = params0.astype(dtype)
-        dyn, x0, fns, lo, hi = _setup(task, params0[0], options.hessian)
-        scale = task.parameterization.scale
-        xs = dyn.rollout(x0, params0 * scale[None])
-        chi = jnp.concatenate([xs, params0], axis=1)
-        st: IPMState = ipm_solve(fns, chi, params0, lo, hi, options)
+        _, _, fns, lo, hi = _setup(task, params0[0], options.hessian)
+        # multiple shooting from the guess's own trajectory (the rollout a restart also uses)
+        st: IPMState = ipm_solve(fns, _rollout(fns, params0), params0, lo, hi, options)
         defects, cK = _constraints(fns, st.chi, st.v)  # at the returned point
         violation = jnp.maximum(jnp.max(jnp.abs(defects)), jnp.max(jnp.abs(cK), initial=0.0))
         return st, violation
