@@ -100,17 +100,6 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(pytest.mark.xdist_group(group))
 
 
-def pytest_runtest_setup(item):
-    _STATS["current"] = item.nodeid
-
-
-def pytest_runtest_teardown(item, nextitem):
-    # Each compiled program holds hundreds of memory mappings on XLA's CPU backend; a test worker
-    # that compiles a few hundred programs would cross vm.max_map_count and crash inside XLA.
-    if lj.trim_compilation_cache(0.4):
-        _STATS["trims"] += 1
-
-
 # Opt-in profile of where a worker's time goes: LDAP_JAX_TEST_PROFILE=DIR writes one JSON file per
 # worker at the end (JAX's event durations summed by name, their counts, and the cache trims).
 _STATS: dict = {"trims": 0}
@@ -129,6 +118,17 @@ if os.environ.get("LDAP_JAX_TEST_PROFILE"):
 
     _monitoring.register_event_duration_secs_listener(_listen)
     _monitoring.register_event_listener(_count)
+
+
+def pytest_runtest_setup(item):
+    _STATS["current"] = item.nodeid
+
+
+def pytest_runtest_teardown(item, nextitem):
+    # Each compiled program holds hundreds of memory mappings on XLA's CPU backend; a test worker
+    # that compiles a few hundred programs would cross vm.max_map_count and crash inside XLA.
+    if lj.trim_compilation_cache(0.4):
+        _STATS["trims"] += 1
 
 
 def pytest_sessionfinish(session, exitstatus):
