@@ -24,10 +24,11 @@ import numpy as np
 from jaxtyping import Array, PRNGKeyArray
 
 from .._compilation_cache import compiler_options
+from .._controls import Constant
 from .._reference import reference
 from .._rollout import check_checkpoint
 from .._simulate import Trajectory, simulate
-from .._validation import check_array, check_positive_int, check_scalar, is_concrete
+from .._validation import check_array, check_positive_int, check_scalar, initial_violation, is_concrete
 from ..integrators import RDP, AbstractIntegrator
 from ..systems import AbstractSystem, Car, Snakeboard
 from ._costs import (
@@ -175,13 +176,7 @@ class Task(eqx.Module):
 
     def init(self, key: PRNGKeyArray | None = None, *, amplitude: float | None = None):
         """An initial guess (deterministic for ``key=None``, random otherwise; vmap over keys)."""
-        p = self.parameterization
-        amplitude = self.init_amplitude if amplitude is None else amplitude
-        if self.guess is not None and isinstance(p, SampledControls):
-            gp = self.guess.init(key, amplitude=amplitude)
-            ts = p.t0 + (p.t_final - p.t0) * jnp.linspace(0.0, 1.0, p.n_steps + 1)
-            return jax.vmap(self.guess.controls(gp))(ts) / p.scale[None, :]
-        return p.init(key, amplitude=amplitude)
+        return _initial_guess(self, key, self.init_amplitude if amplitude is None else amplitude)
 
     def with_options(self, *, integrator=None, checkpoint=None, n_steps=None, goal=None, system=None) -> Task:
         """A copy with another integrator, checkpoint policy, number of steps, goal or system."""
@@ -210,6 +205,17 @@ class Task(eqx.Module):
                     task, parameterization=dataclasses.replace(task.parameterization, n_steps=int(n_steps))
                 )
         return task
+
+
+@eqx.filter_jit
+def _initial_guess(task: Task, key: PRNGKeyArray | None, amplitude: float) -> Array:
+    # one compiled program (op by op, a guess compiled some 15 small programs on a first call)
+    p = task.parameterization
+    if task.guess is not None and isinstance(p, SampledControls):
+        gp = task.guess.init(key, amplitude=amplitude)
+        ts = p.t0 + (p.t_final - p.t0) * jnp.linspace(0.0, 1.0, p.n_steps + 1)
+        return jax.vmap(task.guess.controls(gp))(ts) / p.scale[None, :]
+    return p.init(key, amplitude=amplitude)
 
 
 def make_task(
@@ -323,7 +329,7 @@ def make_task(
                     f"{float(t_final)}"
                 )
         if is_concrete((system, q0, qdot0)):
-            viol = float(system.constraint_residual(q0, system.consistent_qdot(q0, qdot0, jnp.zeros(n))))
+            viol = float(initial_violation(system, q0, qdot0, Constant(jnp.zeros(n)), 0.0)[1])
             if not viol < 1e-10:
                 raise ValueError(f"'qdot0' violates the constraints of {type(system).__name__} ({viol:.2e})")
         lo, hi, cm = np.asarray(q_lower), np.asarray(q_upper), np.asarray(c_max)

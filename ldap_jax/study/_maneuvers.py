@@ -47,7 +47,11 @@ def sample_maneuvers(
     """
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise ValueError(f"'n' must be a positive integer, got {n!r}")
-    keys = jax.random.split(jax.random.PRNGKey(seed), n)
+    return _sample(system, jax.random.split(jax.random.PRNGKey(seed), n), zero_steer_rate)
+
+
+@eqx.filter_jit
+def _sample(system: AbstractSystem, keys: Array, zero_steer_rate: bool):
     man = jax.vmap(system.sample_maneuver)(keys)
     if zero_steer_rate and isinstance(system, Snakeboard):
         man = jax.vmap(lambda a, b, c: _zero_steer_rate(system, a, b, c))(*man)

@@ -105,6 +105,8 @@ class Car(AbstractClosedFormSystem):
         gyro = self.K * self.rho**2 * sigma * u_kin[1] * v[0] / self.l**2
         return ((f[0] - gyro) / self.effective_inertia(sigma))[None]
 
+    # one compiled program per signature (op by op, a first draw compiled some 50 small ones)
+    @eqx.filter_jit
     def sample_maneuver(self, key, *, n_terms: int = 2):
         """A random maneuver with non-trivial paths (reversals, sharp turns, winding).
 

@@ -148,6 +148,8 @@ class Snakeboard(AbstractClosedFormSystem):
         """``cos(phi)``: the reduced description breaks down where it vanishes."""
         return jnp.cos(q[4])
 
+    # one compiled program per signature (op by op, a first draw compiled some 50 small ones)
+    @eqx.filter_jit
     def sample_maneuver(self, key, *, n_terms: int = 2, max_steer: float = 1.0):
         """A random maneuver that stays away from the singularity ``cos(phi) = 0``.
 
