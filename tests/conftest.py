@@ -101,7 +101,8 @@ def pytest_collection_modifyitems(config, items):
 
 
 # Opt-in profile of where a worker's time goes: LDAP_JAX_TEST_PROFILE=DIR writes one JSON file per
-# worker at the end (JAX's event durations summed by name, their counts, and the cache trims).
+# worker at the end (JAX's event durations summed by name, their counts, and the cache trims;
+# per test: the compile, trace and lowering times and the number of programs compiled).
 _STATS: dict = {"trims": 0}
 if os.environ.get("LDAP_JAX_TEST_PROFILE"):
     from jax._src import monitoring as _monitoring
@@ -112,6 +113,8 @@ if os.environ.get("LDAP_JAX_TEST_PROFILE"):
         if event.startswith("/jax/core/compile/"):
             per_test = _STATS.setdefault("tests", {}).setdefault(_STATS.get("current", ""), {})
             per_test[event] = per_test.get(event, 0.0) + duration
+            if event.endswith("backend_compile_duration"):  # how many programs (op by op: many)
+                per_test["programs"] = per_test.get("programs", 0) + 1
 
     def _count(event, **kwargs):
         _STATS[event] = _STATS.get(event, 0) + 1

@@ -276,7 +276,13 @@ def test_riccati_solves_the_qp_and_refinement_reduces_the_residual():
     """The Riccati recursion's step equals a dense solve of the QP's full KKT system; on a system
     with 1e10 barrier terms, each step of iterative refinement reduces the stationarity residual
     at least tenfold, and refinement stops once the residual is below atol."""
-    from ldap_jax.control._riccati import _apply, kkt_residual, riccati_apply, riccati_factor
+    from ldap_jax.control import _riccati
+
+    # compiled (one program per shape and refinement count), not op by op
+    riccati_factor = jax.jit(_riccati.riccati_factor)
+    riccati_apply = jax.jit(_riccati.riccati_apply, static_argnums=5)
+    kkt_residual = jax.jit(_riccati.kkt_residual)
+    _apply = jax.jit(_riccati._apply)
 
     W, Z, QK, C, w, e, qK, c = _random_qp(0)
     K, n, nm = Z.shape
