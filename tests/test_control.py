@@ -37,8 +37,9 @@ def test_discrete_dynamics_reproduce_simulate_and_differentiate(name, make):
         system, q0, qdot0, lj.Sampled(us, t_final), t_final=t_final, n_steps=n, integrator=integrator
     )
     dyn = lj.discretize(system, integrator, h=t_final / n)
-    xs = eqx.filter_jit(dyn.rollout)(dyn.init(q0, qdot0, us[0]), us)
-    nodes = jax.vmap(dyn.node)(xs, us)
+    # compiled, not op by op
+    xs = eqx.filter_jit(dyn.rollout)(eqx.filter_jit(dyn.init)(q0, qdot0, us[0]), us)
+    nodes = eqx.filter_jit(lambda d, x, u: jax.vmap(d.node)(x, u))(dyn, xs, us)
     np.testing.assert_allclose(nodes[0], traj.q, atol=1e-12)
     np.testing.assert_allclose(nodes[1], traj.qdot, atol=1e-12)
     x, u0, u1 = xs[5], us[5], us[6]
