@@ -113,6 +113,20 @@ def test_dla_gradient_matches_finite_differences(sys_name):
     assert abs(grad - fd) < 1e-7 * (1 + abs(fd)), (grad, fd)
 
 
+@eqx.filter_jit  # one program, not op by op
+def _gni_structure(system, q, qdot0, h):
+    """The difference velocities ``v_0 .. v_{N-1}`` of the nodes ``q``, the averaged constraints
+    ``omega(q_k) (v_k + v_{k-1})``, the constraints on ``v_k`` alone, and ``1/2 v^T M(q_0) v``
+    along ``v_{-1} = qdot0, v_0, ...``."""
+    v = jnp.diff(q, axis=0) / h
+    v_all = jnp.concatenate([qdot0[None], v])
+    omega = jax.vmap(system.constraint_forms)(q[:-1])
+    avg = jnp.einsum("kij,kj->ki", omega, v_all[1:] + v_all[:-1])
+    viol = jnp.einsum("kij,kj->ki", omega, v_all[1:])
+    mass = jax.hessian(system.lagrangian, argnums=1)(q[0], qdot0)
+    return v, avg, viol, 0.5 * jnp.einsum("ki,ij,kj->k", v_all, mass, v_all)
+
+
 @pytest.mark.parametrize("sys_name", list(SYSTEMS))
 def test_gni_discrete_structure(sys_name):
     """The faithful GNI's defining properties hold to rounding: the constraints on average,
@@ -125,20 +139,13 @@ def test_gni_discrete_structure(sys_name):
     h_n = 200
     h = CONV_T / h_n
     traj = simulate_batch(system, lj.GNI(), batch, CONV_T, h_n)
-    mass = jax.hessian(system.lagrangian, argnums=1)(q0, qdot0)
     for i in range(2):  # forced, unforced
-        q = traj.q[i]
-        v = jnp.diff(q, axis=0) / h  # v_0 .. v_{N-1}
-        v_all = jnp.concatenate([qdot0[None], v])  # v_{-1} = qdot0
-        omega = jax.vmap(system.constraint_forms)(q[:-1])
-        avg = jnp.einsum("kij,kj->ki", omega, v_all[1:] + v_all[:-1])
+        v, avg, viol, ke = _gni_structure(system, traj.q[i], qdot0, h)
         assert float(jnp.max(jnp.abs(avg))) < 1e-12 * (1 + float(jnp.max(jnp.abs(v)))), sys_name
         # the velocities themselves are not on the constraints (that is the method)
-        viol = jnp.einsum("kij,kj->ki", omega, v_all[1:])
         assert float(jnp.max(jnp.abs(viol))) > 1e-8
         # ... but the node velocities read from the momenta are
         assert float(jnp.max(traj.constraint_residual[i])) < 1e-12 * (1 + float(jnp.max(jnp.abs(v))))
-    ke = 0.5 * jnp.einsum("ki,ij,kj->k", v_all, mass, v_all)
     kin = np.asarray(system.kinematic_index)
     if kin.size == 0:  # with a prescribed (time-varying) steering rate the energy is not conserved
         assert float(jnp.max(jnp.abs(ke - ke[0]))) < 1e-12 * float(ke[0])

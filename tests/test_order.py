@@ -185,6 +185,33 @@ def test_triple_jump_and_mclachlan_reach_order_4_on_smooth_controls():
         assert abs(fitted_order([1 / 8, 1 / 16, 1 / 32], errs) - 4) < 0.3, (scheme, errs)
 
 
+@eqx.filter_jit  # one program, not op by op
+def _substep_residuals(sb, ctl, q, hs_, ts):
+    """(21) and (23) rebuilt from the substep configurations ``q`` (steps ``hs_`` at times ``ts``):
+    the vertical and horizontal residuals, and the momenta ``mu``."""
+    rel = jax.vmap(lambda g0, g1: lie.compose(lie.inverse(g0), g1))(q[:-1, :3], q[1:, :3])
+    xi = jax.vmap(lie.log)(rel) / hs_[:, None]
+    u = (q[1:, 3:] - q[:-1, 3:]) / hs_[:, None]
+    r_a = q[:-1, 3:] + 0.5 * hs_[:, None] * u
+    dl_du, mu = jax.vmap(jax.grad(sb.reduced_lagrangian, argnums=(1, 2)))(r_a, u, xi)
+    out = jax.vmap(lambda v, m: lie.dtau_inv(v, "exp", 1).T @ m)(hs_[:, None] * xi, mu)
+    inc = jax.vmap(lambda v, m: lie.dtau_inv(-v, "exp", 1).T @ m)(hs_[:, None] * xi, mu)
+    jump = out[1:] - inc[:-1]
+    e = jax.vmap(sb.e1)(q[1:-1, 4])
+    vertical = jnp.sum(jump * e, axis=1)
+    f = jax.vmap(ctl)(jnp.asarray(ts))
+    f_a = 0.5 * (f[:-1] + f[1:])
+    # horizontal (23) for the rotor, d_r l = 0: I (u + xi1) jumps by h_{k-1}/2 f_{k-1+a} + h_k/2 f_{k+a}
+    a_k = jax.vmap(sb.connection)(q[1:-1, 3:])
+    horizontal = (
+        dl_du[1:, 0]
+        - dl_du[:-1, 0]
+        - 0.5 * (hs_[:-1] * f_a[:-1, 0] + hs_[1:] * f_a[1:, 0])
+        - jnp.einsum("ki,ki->k", a_k[:, :, 0], jump)
+    )
+    return vertical, horizontal, mu
+
+
 def test_substeps_satisfy_the_discrete_equations():
     """Every substep of a composition is an RDP step: (21) and (23), rebuilt from the substep
     configurations with each substep's own (possibly negative) h, hold to round-off, and the
@@ -208,27 +235,7 @@ def test_substeps_satisfy_the_discrete_equations():
         return jax.lax.scan(step, state, (jnp.asarray(hs), jnp.asarray(ts[:-1])))[1]
 
     q = jnp.concatenate([q0[None], jax.jit(run)()])
-    hs_ = jnp.asarray(hs)
-    rel = jax.vmap(lambda g0, g1: lie.compose(lie.inverse(g0), g1))(q[:-1, :3], q[1:, :3])
-    xi = jax.vmap(lie.log)(rel) / hs_[:, None]
-    u = (q[1:, 3:] - q[:-1, 3:]) / hs_[:, None]
-    r_a = q[:-1, 3:] + 0.5 * hs_[:, None] * u
-    dl_du, mu = jax.vmap(jax.grad(sb.reduced_lagrangian, argnums=(1, 2)))(r_a, u, xi)
-    out = jax.vmap(lambda v, m: lie.dtau_inv(v, "exp", 1).T @ m)(hs_[:, None] * xi, mu)
-    inc = jax.vmap(lambda v, m: lie.dtau_inv(-v, "exp", 1).T @ m)(hs_[:, None] * xi, mu)
-    jump = out[1:] - inc[:-1]
-    e = jax.vmap(sb.e1)(q[1:-1, 4])
-    vertical = jnp.sum(jump * e, axis=1)
-    f = jax.vmap(ctl)(jnp.asarray(ts))
-    f_a = 0.5 * (f[:-1] + f[1:])
-    # horizontal (23) for the rotor, d_r l = 0: I (u + xi1) jumps by h_{k-1}/2 f_{k-1+a} + h_k/2 f_{k+a}
-    a_k = jax.vmap(sb.connection)(q[1:-1, 3:])
-    horizontal = (
-        dl_du[1:, 0]
-        - dl_du[:-1, 0]
-        - 0.5 * (hs_[:-1] * f_a[:-1, 0] + hs_[1:] * f_a[1:, 0])
-        - jnp.einsum("ki,ki->k", a_k[:, :, 0], jump)
-    )
+    vertical, horizontal, mu = _substep_residuals(sb, ctl, q, jnp.asarray(hs), jnp.asarray(ts))
     scale = float(jnp.max(jnp.abs(mu)))
     assert np.any(hs < 0)
     assert float(jnp.max(jnp.abs(vertical))) < 1e-13 * scale / h
