@@ -10,9 +10,10 @@ from helpers import maneuvers, systems
 
 import ldap_jax as lj
 from ldap_jax import study
-from ldap_jax._linalg import solve
+from ldap_jax._linalg import solve as _solve
 
 SYSTEMS = systems()
+solve = jax.jit(_solve)  # compiled, not op by op (each check compiles one program, not dozens)
 
 
 @pytest.mark.parametrize("n", [1, 2, 3, 5, 8, 12])
@@ -41,9 +42,9 @@ def test_solve_needs_pivoting_on_kkt_systems():
 
 def test_solve_errors_and_singular():
     with pytest.raises(ValueError, match="'a'"):
-        solve(jnp.ones((2, 3)), jnp.ones(2))
+        _solve(jnp.ones((2, 3)), jnp.ones(2))
     with pytest.raises(ValueError, match="'b'"):
-        solve(jnp.eye(2), jnp.ones(3))
+        _solve(jnp.eye(2), jnp.ones(3))
     assert not bool(jnp.all(jnp.isfinite(solve(jnp.zeros((2, 2)), jnp.ones(2)))))
 
 
@@ -52,8 +53,8 @@ def test_solve_gradients_equal_lapack():
     a = jnp.asarray(rng.normal(size=(4, 4))) + 3 * jnp.eye(4)
     b = jnp.asarray(rng.normal(size=4))
     for argnum in (0, 1):
-        g = jax.grad(lambda a, b: jnp.sum(jnp.sin(solve(a, b))), argnum)(a, b)
-        g_ref = jax.grad(lambda a, b: jnp.sum(jnp.sin(jnp.linalg.solve(a, b))), argnum)(a, b)
+        g = jax.jit(jax.grad(lambda a, b: jnp.sum(jnp.sin(solve(a, b))), argnum))(a, b)
+        g_ref = jax.jit(jax.grad(lambda a, b: jnp.sum(jnp.sin(jnp.linalg.solve(a, b))), argnum))(a, b)
         np.testing.assert_allclose(g, g_ref, rtol=1e-11, atol=1e-13)
 
 
