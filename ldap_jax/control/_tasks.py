@@ -561,17 +561,17 @@ def replay(task: Task, params, *, rtol: float = 1e-11, atol: float = 1e-11) -> d
     """
     traj = task.rollout(params)
     ref = reference(task.system, task.q0, task.qdot0, task.controls(params), traj.t, rtol=rtol, atol=atol)
-    q_ref, q_mod = np.asarray(ref.q), np.asarray(traj.q)
+    c, e, terms_ref = _replayed(task, params, traj, ref.q, ref.qdot)
+    q_ref, q_mod, c = np.asarray(ref.q), np.asarray(traj.q), np.asarray(c)
     model_pos = float(np.linalg.norm(q_ref[-1, :2] - q_mod[-1, :2]))
     model_head = float(abs(wrap_angle(q_ref[-1, 2] - q_mod[-1, 2])))
     if task.goal is not None:
         goal = np.asarray(task.goal)
         pos = float(np.linalg.norm(q_ref[-1, :2] - goal[:2]))
         head = float(abs(wrap_angle(q_ref[-1, 2] - goal[2])))
-        e = np.asarray(pose_error(q_ref[-1], goal))
+        e = np.asarray(e)
     else:
-        pos, head, e = model_pos, model_head, None
-    c = np.asarray(jax.vmap(task.controls(params))(traj.t))
+        pos, head = model_pos, model_head
     lo, hi = np.asarray(task.q_lower), np.asarray(task.q_upper)
     viol_q = np.max(np.maximum(q_ref - hi, 0.0) + np.maximum(lo - q_ref, 0.0))
     viol_c = np.max(
@@ -579,22 +579,6 @@ def replay(task: Task, params, *, rtol: float = 1e-11, atol: float = 1e-11) -> d
     )
     th0 = float(task.q0[2])
     forward = float((q_ref[-1, 0] - task.q0[0]) * np.cos(th0) + (q_ref[-1, 1] - task.q0[1]) * np.sin(th0))
-    terms_ref = task.terms(
-        Trajectory(
-            t=traj.t,
-            q=ref.q,
-            qdot=ref.qdot,
-            energy=None,
-            work=None,
-            momentum=None,
-            constraint_residual=None,
-            step_residual=None,
-            converged=traj.converged,
-            result=traj.result,
-            failure_index=traj.failure_index,
-        ),
-        params,
-    )
     return {
         "q_ref": q_ref,
         "q_model": q_mod,
@@ -628,3 +612,26 @@ def gradient_memory(task: Task, params) -> dict:
     args = int(ma.argument_size_in_bytes)
     out = int(ma.output_size_in_bytes)
     return {"temp_bytes": temp, "argument_bytes": args, "output_bytes": out, "peak_bytes": temp + args + out}
+
+
+@eqx.filter_jit
+def _replayed(task: Task, params, traj: Trajectory, q_ref, qdot_ref):
+    """What :func:`replay` reads off the reference, as one compiled program (op by op it compiled
+    a hundred small ones): the control values at the step times, the goal's pose error (``None``
+    without a goal) and every term of the task on the reference trajectory."""
+    c = jax.vmap(task.controls(params))(traj.t)
+    e = None if task.goal is None else pose_error(q_ref[-1], task.goal)
+    on_ref = Trajectory(
+        t=traj.t,
+        q=q_ref,
+        qdot=qdot_ref,
+        energy=None,
+        work=None,
+        momentum=None,
+        constraint_residual=None,
+        step_residual=None,
+        converged=traj.converged,
+        result=traj.result,
+        failure_index=traj.failure_index,
+    )
+    return c, e, task.terms(on_ref, params)
