@@ -621,17 +621,7 @@ def _replayed(task: Task, params, traj: Trajectory, q_ref, qdot_ref):
     without a goal) and every term of the task on the reference trajectory."""
     c = jax.vmap(task.controls(params))(traj.t)
     e = None if task.goal is None else pose_error(q_ref[-1], task.goal)
-    on_ref = Trajectory(
-        t=traj.t,
-        q=q_ref,
-        qdot=qdot_ref,
-        energy=None,
-        work=None,
-        momentum=None,
-        constraint_residual=None,
-        step_residual=None,
-        converged=traj.converged,
-        result=traj.result,
-        failure_index=traj.failure_index,
-    )
+    # the reference's nodes in the model's trajectory, without the model's diagnostics
+    diagnostics = dict.fromkeys(("energy", "work", "momentum", "constraint_residual", "step_residual"))
+    on_ref = dataclasses.replace(traj, q=q_ref, qdot=qdot_ref, **diagnostics)
     return c, e, task.terms(on_ref, params)
