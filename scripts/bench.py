@@ -1,5 +1,5 @@
 """Benchmarks of the integrators: throughput, compiled C, diffrax peers, work-precision (10 s and
-10 min), orders, energy, gradient cost, memory, compile times.
+10 min), orders, energy, gradient cost, memory, compile times, first calls in a new process.
 
     python scripts/bench.py --quick --out results     # part of `make demo`, a few minutes
     python scripts/bench.py --out results             # the full sizes (B = N = 1000, dense sweeps)
@@ -629,6 +629,67 @@ def compile_times(cfg: Config, log) -> list[dict]:
     return rows
 
 
+# A new interpreter (no persistent compilation cache) times the first calls a user makes; each
+# entry: wall seconds and the number of XLA programs compiled during the call.
+_FIRST_CALLS = r"""
+import json, sys, time
+import jax
+jax.config.update("jax_enable_x64", True)
+from jax._src import monitoring
+import ldap_jax as lj
+from ldap_jax import control as lc
+
+count = [0]
+monitoring.register_event_duration_secs_listener(
+    lambda event, duration, **kw: count.__setitem__(0, count[0] + event.endswith("backend_compile_duration"))
+)
+out = {}
+
+
+def timed(name, fn):
+    count[0] = 0
+    t = time.perf_counter()
+    value = jax.block_until_ready(fn())
+    out[name] = [time.perf_counter() - t, count[0]]
+    return value
+
+
+car = lj.Car()
+q0, qdot0, ctl = timed("car.sample_maneuver", lambda: car.sample_maneuver(jax.random.PRNGKey(0)))
+traj = timed(
+    "simulate (car, RDP, N = 100)", lambda: lj.simulate(car, q0, qdot0, ctl, t_final=10.0, n_steps=100)
+)
+timed("reference (the same nodes)", lambda: lj.reference(car, q0, qdot0, ctl, traj.t).q)
+task = timed("lc.parallel_park(n_steps=40)", lambda: lc.parallel_park(n_steps=40))
+sol = timed("lc.solve", lambda: lc.solve(task))
+timed("lc.replay", lambda: lc.replay(task, sol.params)["q_ref"])
+print("FIRST_CALLS " + json.dumps(out))
+"""
+
+
+def first_calls(cfg: Config, log) -> list[dict]:
+    """First calls in one new process (no persistent compilation cache; a first call happens once,
+    so it is not repeated): wall time and the number of programs XLA compiled for each (work run op
+    by op would compile one program per operation)."""
+    import subprocess
+    import sys
+
+    env = {
+        k: v for k, v in os.environ.items() if not k.startswith(("JAX_COMPILATION_CACHE", "JAX_PERSISTENT"))
+    }
+    proc = subprocess.run(
+        [sys.executable, "-c", _FIRST_CALLS], env=env, capture_output=True, text=True, timeout=1200
+    )
+    line = [x for x in proc.stdout.splitlines() if x.startswith("FIRST_CALLS ")]
+    if proc.returncode != 0 or not line:
+        raise RuntimeError(f"first-call child process failed:\n{proc.stderr[-3000:]}")
+    rows = []
+    for name, (seconds, programs) in json.loads(line[0][len("FIRST_CALLS ") :]).items():
+        rows.append(dict(call=name, seconds=seconds, programs=programs))
+        log(f"  {name}: {seconds:.2f} s, {programs} programs compiled")
+    return rows
+
+
 def general_step(cfg: Config, log) -> list[dict]:
     """Cost of RDP's general implicit step relative to the closed form (snakeboard, batched)."""
     sb = SYSTEMS["snakeboard"]
@@ -824,6 +885,15 @@ def write_markdown(path, res):
             for r in res.get("compile", [])
         ],
     )
+    L += _section(
+        "First calls in a new process",
+        [
+            "Each call timed once in a fresh interpreter (no persistent compilation cache), with the number",
+            "of programs XLA compiled during it (the rollout or solver itself, plus anything run op by op).",
+        ],
+        ("call", "wall (s)", "programs compiled"),
+        [(r["call"], f"{r['seconds']:.2f}", r["programs"]) for r in res.get("first_calls", [])],
+    )
     missing = [s for s in SECTIONS if s not in res]
     if missing:
         L += ["", f"(Sections not run: {', '.join(missing)}.)"]
@@ -871,6 +941,7 @@ SECTIONS = (
     "memory",
     "general_step",
     "compile",
+    "first_calls",
 )
 
 
@@ -914,6 +985,7 @@ def main(argv=None) -> int:
         "memory": lambda: memory(cfg, log),
         "general_step": lambda: general_step(cfg, log),
         "compile": lambda: compile_times(cfg, log),
+        "first_calls": lambda: first_calls(cfg, log),
     }
     for name in SECTIONS:
         if name in only:
