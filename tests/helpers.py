@@ -88,14 +88,29 @@ def integrators():
 
 
 def maneuvers(system, n, seed=0):
-    """A batch of ``n`` random maneuvers ``(q0, qdot0, controls)`` (leading batch axis)."""
-    keys = jax.random.split(jax.random.PRNGKey(seed), n)
-    return _sample(system, keys)
+    """A batch of ``n`` random maneuvers ``(q0, qdot0, controls)`` (leading batch axis): the
+    study's sampler, without its snakeboard steering-rate adjustment."""
+    from ldap_jax import study
+
+    return study.sample_maneuvers(system, n, seed, zero_steer_rate=False)
 
 
-@eqx.filter_jit
-def _sample(system, keys):
-    return jax.vmap(system.sample_maneuver)(keys)
+@eqx.filter_jit  # one program, not op by op
+def discrete_momenta(system, q, hs, alpha):
+    """The discrete momenta rebuilt from configurations alone (steps ``hs``, quadrature point
+    ``alpha``, exp retraction): ``u_k = (r_{k+1} - r_k) / h_k``, ``xi_k = log(g_k^-1 g_{k+1}) / h_k``,
+    ``(dl_du, mu)_k`` at ``(r_k + alpha h_k u_k, u_k, xi_k)``, and the jumps at the interior nodes
+    ``dtau^-1(h_k xi_k)^T mu_k - dtau^-1(-h_{k-1} xi_{k-1})^T mu_{k-1}`` of (21) and (23)."""
+    from ldap_jax import lie
+
+    rel = jax.vmap(lambda g0, g1: lie.compose(lie.inverse(g0), g1))(q[:-1, :3], q[1:, :3])
+    xi = jax.vmap(lie.log)(rel) / hs[:, None]
+    u = (q[1:, 3:] - q[:-1, 3:]) / hs[:, None]
+    r_a = q[:-1, 3:] + alpha * hs[:, None] * u
+    dl_du, mu = jax.vmap(jax.grad(system.reduced_lagrangian, argnums=(1, 2)))(r_a, u, xi)
+    out = jax.vmap(lambda v, m: lie.dtau_inv(v, "exp", 1).T @ m)(hs[:, None] * xi, mu)
+    inc = jax.vmap(lambda v, m: lie.dtau_inv(-v, "exp", 1).T @ m)(hs[:, None] * xi, mu)
+    return dl_du, mu, out[1:] - inc[:-1]
 
 
 @contextlib.contextmanager

@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import fitted_order, index, maneuvers, systems
+from helpers import discrete_momenta, fitted_order, index, maneuvers, systems
 
 import ldap_jax as lj
 from ldap_jax import lie
@@ -189,14 +189,7 @@ def test_triple_jump_and_mclachlan_reach_order_4_on_smooth_controls():
 def _substep_residuals(sb, ctl, q, hs_, ts):
     """(21) and (23) rebuilt from the substep configurations ``q`` (steps ``hs_`` at times ``ts``):
     the vertical and horizontal residuals, and the momenta ``mu``."""
-    rel = jax.vmap(lambda g0, g1: lie.compose(lie.inverse(g0), g1))(q[:-1, :3], q[1:, :3])
-    xi = jax.vmap(lie.log)(rel) / hs_[:, None]
-    u = (q[1:, 3:] - q[:-1, 3:]) / hs_[:, None]
-    r_a = q[:-1, 3:] + 0.5 * hs_[:, None] * u
-    dl_du, mu = jax.vmap(jax.grad(sb.reduced_lagrangian, argnums=(1, 2)))(r_a, u, xi)
-    out = jax.vmap(lambda v, m: lie.dtau_inv(v, "exp", 1).T @ m)(hs_[:, None] * xi, mu)
-    inc = jax.vmap(lambda v, m: lie.dtau_inv(-v, "exp", 1).T @ m)(hs_[:, None] * xi, mu)
-    jump = out[1:] - inc[:-1]
+    dl_du, mu, jump = discrete_momenta(sb, q, hs_, 0.5)
     e = jax.vmap(sb.e1)(q[1:-1, 4])
     vertical = jnp.sum(jump * e, axis=1)
     f = jax.vmap(ctl)(jnp.asarray(ts))
