@@ -22,6 +22,7 @@ import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Float
 
+from ._compilation_cache import compiled_unless_staged
 from ._linalg import solve
 from ._typing import ArrayLike
 from ._validation import cast_floats, check_array
@@ -36,7 +37,10 @@ class DiscreteDynamics(eqx.Module):
 
     ``u_k`` are control channel values at ``t_k = t0 + k h`` (shape ``(n_controls,)``); inside a
     step the integrator reads them interpolated linearly. All methods are pure, jit-able,
-    vmap-able and differentiable; the state is a flat vector of length :attr:`n_state`.
+    vmap-able and differentiable; the state is a flat vector of length :attr:`n_state`. Called on
+    values (in a notebook, or under a top-level ``jax.grad``/``jax.jacfwd``) each method runs as
+    one compiled program, compiled once for all later values; inside your ``jax.jit`` it is traced
+    inline into your program.
 
     Attributes:
         system, integrator: the model and the scheme.
@@ -110,6 +114,7 @@ class DiscreteDynamics(eqx.Module):
         f = jnp.asarray(self.integrator.control_nodes, u0.dtype)[:, None]
         return (1 - f) * u0[None] + f * u1[None]
 
+    @compiled_unless_staged
     def init(self, q0: ArrayLike, qdot0: ArrayLike, u0: ArrayLike) -> Float[Array, " n"]:
         """The flat state at node 0 from a configuration and a velocity on the constraints
         (kinematic entries of ``qdot0`` are taken from ``u0``)."""
@@ -119,6 +124,7 @@ class DiscreteDynamics(eqx.Module):
         c = self.stage_controls(u0, u0)
         return self.pack(self.integrator.init(system, self.h, q0, qdot0, c))
 
+    @compiled_unless_staged
     def step(
         self, x: Float[Array, " n"], u0: ArrayLike, u1: ArrayLike, k: ArrayLike = 0
     ) -> Float[Array, " n"]:
@@ -127,6 +133,7 @@ class DiscreteDynamics(eqx.Module):
         controls, which enter only through ``u``)."""
         return self.step_with_info(x, u0, u1, k)[0]
 
+    @compiled_unless_staged
     def step_with_info(self, x, u0, u1, k=0):
         """``(x_{k+1}, StepInfo)``: the step's result code and residual."""
         u0, u1 = jnp.asarray(u0, x.dtype), jnp.asarray(u1, x.dtype)
@@ -134,17 +141,20 @@ class DiscreteDynamics(eqx.Module):
         state, info = self.integrator.step(self.system, self.h, state, self.stage_controls(u0, u1))
         return self.pack(state), info
 
+    @compiled_unless_staged
     def observe(self, x: Float[Array, " n"], u: ArrayLike) -> Observation:
         """The node held by ``x``: configuration, velocity (from the momenta for RDP) and the
         diagnostics, with ``u`` the controls at the node."""
         u = jnp.asarray(u, x.dtype)
         return self.integrator.observe(self.system, self.unpack(x, u), u)
 
+    @compiled_unless_staged
     def node(self, x: Float[Array, " n"], u: ArrayLike) -> tuple[Array, Array]:
         """``(q, qdot)`` held by ``x`` (no diagnostics: the light path for costs and constraints)."""
         u = jnp.asarray(u, x.dtype)
         return self.integrator.node(self.system, self.unpack(x, u), u)
 
+    @compiled_unless_staged
     def rollout(self, x0: Float[Array, " n"], us: Float[Array, "K n_controls"]) -> Float[Array, "K n"]:
         """States at nodes ``0 .. K-1`` from ``x0`` and the control values ``us`` at the nodes
         (one ``lax.scan``)."""

@@ -58,6 +58,50 @@ def test_discrete_dynamics_reproduce_simulate_and_differentiate(name, make):
         )
 
 
+def test_discrete_dynamics_called_eagerly_compile_once_and_inline_under_jit():
+    """Called on values, init/step/observe/node each run as one compiled program (not one per
+    operation), and new values (controls, k) compile nothing more; under jax.grad on values the
+    step is one program too; inside a jit the step is traced inline: the caller's jaxpr is the
+    one the undecorated step gives, with no added call boundary."""
+    car = lj.Car()
+    dyn = lj.discretize(car, lj.RDP(order=4), h=0.07)
+    u0, u1 = np.array([0.05, 0.2]), np.array([0.05, 0.3])
+    q0 = np.array([0.1, -0.2, 0.3, 0.0, 0.2])
+    qdot0 = car.qdot_from_velocities(q0, np.array([1.0]), u0)
+    lj.compiler_options()  # the library's once-per-process check of XLA's options, done
+    with compiled_programs() as first:
+        x0 = dyn.init(q0, qdot0, u0)
+        x1 = dyn.step(x0, u0, u1)
+        obs = dyn.observe(x1, u1)
+        node = dyn.node(x1, u1)
+        g = jax.grad(lambda x: jnp.sum(dyn.step(x, u0, u1)))(x0)
+    # one program per method, two for the gradient of the step (linearised, transposed) and two
+    # for this test's own sum under grad, which runs op by op; op by op the methods compiled 90
+    assert len(first) <= 8, first
+    with compiled_programs() as again:
+        x2 = dyn.step(x1, u1, u1 + 0.1, 1)
+        dyn.step(x2, u1 + 0.1, u0, k=2)
+        dyn.observe(x2, u0)
+        jax.grad(lambda x: jnp.sum(dyn.step(x, u1, u0)))(x1)
+    assert again == []
+    # the same values as the whole computation compiled by the caller
+    ref = jax.jit(
+        lambda a, b, c, d: (
+            (x := dyn.init(a, b, c)),
+            (y := dyn.step(x, c, d)),
+            dyn.observe(y, d).q,
+            dyn.node(y, d)[1],
+            jax.grad(lambda z: jnp.sum(dyn.step(z, c, d)))(x),
+        )
+    )(q0, qdot0, u0, u1)
+    for a, b in zip((x0, x1, obs.q, node[1], g), ref):
+        np.testing.assert_allclose(a, b, rtol=1e-13, atol=1e-15)
+    # under the caller's jit: inline
+    inline = jax.make_jaxpr(lambda x: dyn.step(x, u0, u1))(x0)
+    undecorated = jax.make_jaxpr(lambda x: type(dyn).step.__wrapped__(dyn, x, u0, u1))(x0)
+    assert [e.primitive.name for e in inline.jaxpr.eqns] == [e.primitive.name for e in undecorated.jaxpr.eqns]
+
+
 def test_policy_with_zero_feedback_equals_open_loop():
     """A linear feedback policy with zero gain reproduces its feedforward applied open-loop; with a
     gain it changes the run and still works under vmap."""
