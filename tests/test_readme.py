@@ -63,6 +63,10 @@ def test_readme_all_cores_example_runs_sharded():
     code = (
         blocks[0].replace("os.cpu_count()", "2").replace("PRNGKey(0), 1000)", "PRNGKey(0), 6)")
     )  # small; 2 devices anywhere
+    # compiled with the suite's code generation (conftest), added to the flags the snippet sets
+    flags = "os.environ['XLA_FLAGS'] += ' ' + os.environ.get('LDAP_JAX_TEST_FLAGS', '')\n"
+    assert "\nimport jax\n" in code
+    code = code.replace("\nimport jax\n", "\n" + flags + "import jax\n", 1)
     check = """
 import numpy as np
 out = run(q0, qdot0, ctl)
