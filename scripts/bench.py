@@ -663,6 +663,12 @@ timed("reference (the same nodes)", lambda: lj.reference(car, q0, qdot0, ctl, tr
 task = timed("lc.parallel_park(n_steps=40)", lambda: lc.parallel_park(n_steps=40))
 sol = timed("lc.solve", lambda: lc.solve(task))
 timed("lc.replay", lambda: lc.replay(task, sol.params)["q_ref"])
+dyn = lj.discretize(car, lj.RDP(order=4), h=0.1)
+u0, u1, u2 = jax.block_until_ready([ctl(0.0), ctl(0.1), ctl(0.2)])
+x0 = timed("dyn.init (RDP order 4)", lambda: dyn.init(q0, qdot0, u0))
+timed("dyn.step", lambda: dyn.step(x0, u0, u1))
+timed("dyn.step, new values", lambda: dyn.step(x0, u1, u2, 1))
+timed("jax.jacfwd(dyn.step)", lambda: jax.jacfwd(dyn.step)(x0, u0, u1))
 print("FIRST_CALLS " + json.dumps(out))
 """
 
