@@ -6,7 +6,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import discrete_momenta, fitted_order, index, maneuvers, systems
+from helpers import (
+    discrete_momenta,
+    fitted_order,
+    index,
+    maneuvers,
+    reference_batch,
+    simulate_ns,
+    systems,
+)
 
 import ldap_jax as lj
 from ldap_jax import lie
@@ -135,24 +143,14 @@ def test_step_then_negative_step_returns_to_start(name, forced):
 
 
 def _terminal_errors(system, integrator, batch, t_final, ns):
-    q0, qdot0, ctl = batch
-    ref = jax.vmap(lambda a, b, c: lj.reference(system, a, b, c, jnp.array([t_final])).q[-1])(q0, qdot0, ctl)
+    """Largest terminal position error over the batch at each step count of ``ns`` (ratios powers
+    of two): one compiled program for all of them (helpers.simulate_ns)."""
+    ref = np.asarray(reference_batch(system, batch, jnp.array([t_final])).q[:, -1])
+    runs = simulate_ns(system, integrator, batch, t_final, ns, diagnostics=False)
     errs = []
     for n in ns:
-        q = jax.vmap(
-            lambda a, b, c, n=n: lj.simulate(
-                system,
-                a,
-                b,
-                c,
-                t_final=t_final,
-                n_steps=n,
-                integrator=integrator,
-                save="final",
-                diagnostics=False,
-            ).q[-1]
-        )(q0, qdot0, ctl)
-        errs.append(float(jnp.max(jnp.linalg.norm(q[:, :3] - ref[:, :3], axis=-1))))
+        assert not bool(np.any(runs[n].failed))
+        errs.append(float(np.max(np.linalg.norm(runs[n].q[:, n, :3] - ref[:, :3], axis=-1))))
     return errs
 
 
@@ -244,13 +242,19 @@ def test_node_velocities_from_momenta(name):
     """Trajectory.qdot is read from the carried momenta: at order 2 it is second-order accurate
     against the reference velocity, and the energy balance E - E0 - W converges at order 2."""
     system = SYSTEMS[name]
-    q0, qdot0, ctl = index(maneuvers(system, 1, seed=16), 0)
-    errs = []
-    for n in (100, 200, 400):
-        traj = lj.simulate(system, q0, qdot0, ctl, t_final=4.0, n_steps=n, save=n // 4)
-        ref = lj.reference(system, q0, qdot0, ctl, traj.t)
-        errs.append(float(jnp.max(jnp.abs(traj.qdot - ref.qdot))))
+    batch = maneuvers(system, 1, seed=16)
+    q0, qdot0, ctl = index(batch, 0)
+    ns = (100, 200, 400)
+    runs = simulate_ns(system, lj.RDP(), batch, 4.0, ns)  # one program for the three step counts
+    errs, balance = [], []
+    for n in ns:
+        assert not bool(np.any(runs[n].failed))
+        t, qdot = runs[n].t[0, :: n // 4], runs[n].qdot[0, :: n // 4]
+        ref = lj.reference(system, q0, qdot0, ctl, t)
+        errs.append(float(jnp.max(jnp.abs(qdot - ref.qdot))))
+        balance.append(float(np.max(np.abs(runs[n].energy_balance))))
     assert abs(fitted_order([1, 0.5, 0.25], errs) - 2) < 0.15, errs
+    assert abs(fitted_order([1, 0.5, 0.25], balance) - 2) < 0.15, balance
 
 
 @pytest.mark.parametrize("name", list(SYSTEMS))
