@@ -246,12 +246,12 @@ def test_node_velocities_from_momenta(name):
     q0, qdot0, ctl = index(batch, 0)
     ns = (100, 200, 400)
     runs = simulate_ns(system, lj.RDP(), batch, 4.0, ns)  # one program for the three step counts
+    # the samples t = 0, 1, ..., 4 s are nodes of every run: one reference for the three
+    ref = np.asarray(lj.reference(system, q0, qdot0, ctl, runs[ns[0]].t[0, :: ns[0] // 4]).qdot)
     errs, balance = [], []
     for n in ns:
         assert not bool(np.any(runs[n].failed))
-        t, qdot = runs[n].t[0, :: n // 4], runs[n].qdot[0, :: n // 4]
-        ref = lj.reference(system, q0, qdot0, ctl, t)
-        errs.append(float(jnp.max(jnp.abs(qdot - ref.qdot))))
+        errs.append(float(np.max(np.abs(runs[n].qdot[0, :: n // 4] - ref))))
         balance.append(float(np.max(np.abs(runs[n].energy_balance))))
     assert abs(fitted_order([1, 0.5, 0.25], errs) - 2) < 0.15, errs
     assert abs(fitted_order([1, 0.5, 0.25], balance) - 2) < 0.15, balance
