@@ -3,6 +3,7 @@ import os
 import pathlib
 import subprocess
 import sys
+import time
 
 import jax
 import pytest
@@ -102,8 +103,14 @@ def _module_fixtures(item) -> list[str]:
     return sorted(name for name, defs in info.name2fixturedefs.items() if defs and defs[-1].scope == "module")
 
 
-@pytest.hookimpl(tryfirst=True)
+@pytest.hookimpl(hookwrapper=True)
 def pytest_collection_modifyitems(config, items):
+    """Marks the tests that share results with their ``xdist_group`` (before any other
+    implementation of the hook runs, xdist's included); afterwards, in a ``--dist loadgroup``
+    worker, checks that every grouped test carries its group in its node id (xdist's side channel
+    to the scheduler). With pytest 9.2, xdist 3.8 cannot set it (pytest-xdist#1386): every test was
+    scheduled on its own, without an error, and both workers computed every shared result; hence
+    the ``pytest<9.2`` pin, and this check so that it cannot happen silently again."""
     for item in items:
         group = _GROUPS.get(item.path.name)
         if item.path.name == "test_general.py" and item.name == "test_sleigh_energy_and_momentum_equation":
@@ -114,6 +121,14 @@ def pytest_collection_modifyitems(config, items):
             group = f"{item.path.stem}:{','.join(scoped)}"
         if group is not None:
             item.add_marker(pytest.mark.xdist_group(group))
+    yield
+    if os.environ.get("PYTEST_XDIST_WORKER") and config.getvalue("loadgroup"):
+        lost = [i.nodeid for i in items if i.get_closest_marker("xdist_group") and "@" not in i.nodeid]
+        if lost:
+            raise pytest.UsageError(
+                f"--dist loadgroup: {len(lost)} grouped tests lost their xdist group (e.g. {lost[0]}); "
+                "this pytest-xdist does not work with this pytest (pytest-xdist#1386)"
+            )
 
 
 # Opt-in profile of where a worker's time goes: LDAP_JAX_TEST_PROFILE=DIR writes one JSON file per
@@ -141,9 +156,15 @@ if os.environ.get("LDAP_JAX_TEST_PROFILE"):
 
 def pytest_runtest_setup(item):
     _STATS["current"] = item.nodeid
+    _STATS["started"] = time.perf_counter()
+    _STATS.setdefault("first_test_at", time.time())
 
 
 def pytest_runtest_teardown(item, nextitem):
+    if "started" in _STATS:  # wall time of setup + call (the worker's schedule: when it went idle)
+        per_test = _STATS.setdefault("tests", {}).setdefault(item.nodeid, {})
+        per_test["wall"] = time.perf_counter() - _STATS.pop("started")
+        _STATS["last_test_at"] = time.time()
     # Each compiled program holds hundreds of memory mappings on XLA's CPU backend; a test worker
     # that compiles a few hundred programs would cross vm.max_map_count and crash inside XLA.
     if lj.trim_compilation_cache(0.4):
