@@ -106,6 +106,10 @@ def reference(
     system's singularity is crossed (diffrax events), and after
     ``max_steps`` steps: it cannot hang. Inputs are checked as in :func:`~ldap_jax.simulate`.
 
+    One compiled program serves every request whose number of samples rounds up to the same power
+    of two (the samples are padded with the last time and sliced off again: the solver's steps do
+    not depend on where it samples), and any tolerances (``rtol`` and ``atol`` are traced).
+
     Args:
         system, q0, qdot0, controls: as for :func:`ldap_jax.simulate` (``controls=None``: none).
         ts: non-decreasing, finite sample times (T,), all ``>= t0``; e.g. ``traj.t`` of a
@@ -134,36 +138,62 @@ def reference(
     if not isinstance(solver, diffrax.AbstractSolver):
         raise TypeError(f"'solver' must be a diffrax solver (e.g. diffrax.Dopri8()) or None, got {solver!r}")
     raise_if_concrete(system, None, q0, qdot0, controls, t0, None, check_constraints)
+    n = ts.shape[0]
+    ts = _padded(ts)
     note_program(
         (
             "reference",
             program_key(system, q0, qdot0, controls, ts, solver),
-            rtol,
-            atol,
             max_steps,
             bool(check_constraints),
         )
     )
-    return _reference(
+    sol = _reference(
         system,
         q0,
         qdot0,
         controls,
         ts,
         jnp.asarray(t0),
-        rtol,
-        atol,
+        jnp.asarray(rtol),
+        jnp.asarray(atol),
         solver,
         max_steps,
         bool(check_constraints),
     )
+    return sol if n == ts.shape[0] else _first(sol, n)
+
+
+def _bucket(n: int) -> int:
+    """The number of samples ``reference`` solves for when asked for ``n``: the next power of two
+    (at least 4), so that requests differing only in their number of samples share a compiled
+    program. The solver's steps do not depend on the sample times (it interpolates its dense
+    output at them), so the extra samples cost nothing but the interpolation."""
+    return max(4, 1 << (n - 1).bit_length())
+
+
+def _padded(ts: Array) -> Array:
+    """``ts`` extended to :func:`_bucket` samples by repeating its last time."""
+    pad = _bucket(ts.shape[0]) - ts.shape[0]
+    if not pad:
+        return ts
+    if is_concrete(ts):
+        ts_np = np.asarray(ts)
+        return jnp.asarray(np.concatenate([ts_np, np.full(pad, ts_np[-1], ts_np.dtype)]))
+    return jnp.concatenate([ts, jnp.full(pad, ts[-1], ts.dtype)])
+
+
+@eqx.filter_jit
+def _first(sol: Solution, n: int) -> Solution:
+    """The first ``n`` samples of ``sol`` (undoing :func:`_padded`)."""
+    return eqx.tree_at(lambda s: (s.t, s.q, s.qdot), sol, (sol.t[:n], sol.q[:n], sol.qdot[:n]))
 
 
 @jit
 def _reference(system, q0, qdot0, controls, ts, t0, rtol, atol, solver, max_steps, check_constraints):
     dtype = jnp.result_type(q0, qdot0)
     system, controls = cast_floats((system, controls), dtype)
-    q0, qdot0, ts, t0 = (jnp.asarray(x, dtype) for x in (q0, qdot0, ts, t0))
+    q0, qdot0, ts, t0, rtol, atol = (jnp.asarray(x, dtype) for x in (q0, qdot0, ts, t0, rtol, atol))
     c0 = controls(t0)
     qdot0 = system.consistent_qdot(q0, qdot0, c0)
     ok_ts = jnp.all(jnp.isfinite(ts)) & jnp.all(jnp.diff(ts) >= 0) & (ts[0] >= t0)

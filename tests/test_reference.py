@@ -5,7 +5,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import index, maneuvers, systems
+from helpers import compiled_programs, index, maneuvers, systems
 
 import ldap_jax as lj
 
@@ -51,6 +51,26 @@ def test_reference_is_converged():
     a = lj.reference(sb, q0, qdot0, ctl, ts)
     b = lj.reference(sb, q0, qdot0, ctl, ts, rtol=1e-13, atol=1e-13)
     assert float(jnp.max(jnp.abs(a.q - b.q))) < 1e-9
+
+
+def test_reference_shares_one_program_across_sample_counts_and_tolerances():
+    """11 and 13 samples (both padded to 16) and another tolerance run the program compiled for the
+    first request; the samples the two requests share agree to round-off (the solver's steps do
+    not depend on where it samples), and the padding never shows in the result."""
+    sb = SYSTEMS["snakeboard"]
+    q0, qdot0, ctl = index(maneuvers(sb, 1, seed=22), 0)
+    ts = jnp.linspace(0.0, 10.0, 11)
+    more = jnp.sort(jnp.concatenate([ts, jnp.array([2.5, 7.5])]))
+    a = lj.reference(sb, q0, qdot0, ctl, ts)
+    with compiled_programs() as names:
+        b = lj.reference(sb, q0, qdot0, ctl, more)
+        lj.reference(sb, q0, qdot0, ctl, ts, rtol=1e-12, atol=1e-12)
+    assert "jit(_reference)" not in names, names
+    assert a.q.shape == (11, 5) and b.q.shape == (13, 5) and b.t.shape == (13,)
+    np.testing.assert_array_equal(b.t, more)
+    shared = np.isin(np.asarray(more), np.asarray(ts))
+    np.testing.assert_allclose(b.q[shared], a.q, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(b.qdot[shared], a.qdot, rtol=0, atol=1e-13)
 
 
 def test_reference_is_converged_on_sampled_controls():
