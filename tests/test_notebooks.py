@@ -10,6 +10,7 @@ as a failure.
 import json
 import os
 import pathlib
+import shutil
 import subprocess
 import sys
 
@@ -56,12 +57,16 @@ with open(sys.argv[1], "w") as f:
 
 @pytest.fixture(scope="module")
 def notebook_report(tmp_path_factory):
-    """Runs every notebook (in notebooks/, as the working directory) in one child process."""
-    out = tmp_path_factory.mktemp("notebooks") / "report.json"
+    """Runs every notebook in one child process, on copies in a temporary working directory (the
+    files the notebooks write, e.g. their animations, do not touch the checkout)."""
+    work = tmp_path_factory.mktemp("notebooks")
+    for path in NOTEBOOKS:
+        shutil.copy(path, work / path.name)
+    out = work / "report.json"
     env = dict(os.environ, MPLBACKEND="Agg", LDAP_JAX_NOTEBOOK_TEST="1")
     res = subprocess.run(
         [sys.executable, "-c", RUNNER, str(out), *(p.name for p in NOTEBOOKS)],
-        cwd=NOTEBOOKS[0].parent,
+        cwd=work,
         env=env,
         capture_output=True,
         text=True,
