@@ -140,9 +140,11 @@ def test_car_effective_inertia_sign():
     ],
 )
 def test_non_positive_parameters_are_named(cls, bad):
+    """The message names the parameter and lists the values the model got, as plain numbers."""
     for value in (0.0, -1.0, float("nan")):
-        with pytest.raises(ValueError, match=f"'{bad}'"):
+        with pytest.raises(ValueError, match=f"'{bad}'") as err:
             cls(**{bad: value})
+        assert f" {bad}={value:g}" in str(err.value) and "Array(" not in str(err.value), str(err.value)
 
 
 def test_snakeboard_rotor_inertia_bound():

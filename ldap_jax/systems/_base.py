@@ -67,6 +67,11 @@ def concrete(x) -> bool:
     return not isinstance(x, jax.core.Tracer)
 
 
+def _number(x) -> str:
+    """A parameter's value for an error message: ``0.1``, ``[0.02, -1]``."""
+    return np.array2string(np.asarray(x), separator=", ", formatter={"float_kind": lambda v: f"{v:.6g}"})
+
+
 def positive_checks(obj, *names: str) -> tuple[tuple[str, Array], ...]:
     """``(message, condition)`` pairs: each named parameter positive and finite."""
     return tuple(
@@ -154,11 +159,11 @@ class AbstractSystem(eqx.Module):
             checks = self.parameter_checks()
         for message, ok in checks:
             if concrete(ok) and not bool(np.all(np.asarray(ok))):
-                values = {
-                    f.name: getattr(self, f.name)
+                values = ", ".join(
+                    f"{f.name}={_number(getattr(self, f.name))}"
                     for f in dataclasses.fields(self)
                     if eqx.is_array(getattr(self, f.name))
-                }
+                )
                 raise ValueError(f"{type(self).__name__}: {message}, got {values}")
 
     @property
