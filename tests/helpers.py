@@ -114,15 +114,21 @@ def discrete_momenta(system, q, hs, alpha):
 
 
 @contextlib.contextmanager
-def compiled_programs():
+def compiled_programs(stage: str = "compile"):
     """Yield a list that collects the names of the programs XLA compiles inside the block
-    (e.g. ``"jit(_run)"``)."""
+    (e.g. ``"jit(_run)"``); ``stage="trace"``: of the functions JAX traces for ``jit`` (e.g.
+    ``"_run"``), which a hit in the persistent compilation cache does not skip."""
     from jax._src import monitoring
 
     names: list[str] = []
+    wanted = {
+        "compile": "/jax/core/compile/backend_compile_duration",
+        "trace": "/jax/core/compile/jaxpr_trace_duration",
+    }
+    wanted = wanted[stage]
 
     def listen(event, duration, **kwargs):
-        if event == "/jax/core/compile/backend_compile_duration":
+        if event == wanted:
             names.append(kwargs.get("fun_name"))
 
     monitoring.register_event_duration_secs_listener(listen)

@@ -2,6 +2,8 @@
 solver (convergence, hard constraints, replay accuracy, sensitivities, vmap), the optax loop on
 the penalty form, and the cost terms."""
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -147,6 +149,21 @@ def test_solve_meets_the_constraints_on_the_reference(name, car_solutions):
     if name == "u_turn":  # a bound is active at the optimum (the lane |y| <= 1/2 or |sigma| <= 1)
         q_ref = np.asarray(rp["q_ref"])
         assert max(np.max(np.abs(q_ref[:, 1])) / 0.5, np.max(np.abs(q_ref[:, 4])) / 1.0) > 0.999
+
+
+def test_tasks_that_differ_only_outside_the_solver_share_its_program(car_solutions):
+    """A task's name, penalty weights, memory policy and guess settings are static but unread by
+    the solver: changing them traces no new interior-point program and gives the same solution
+    (the fixture's parallel_park and u_turn share one program this way)."""
+    task, sol = car_solutions["parallel_park"]
+    other = dataclasses.replace(
+        task, name="renamed", penalty=lc.Penalty(heading=1.0), init_amplitude=0.05, checkpoint=True
+    )
+    with compiled_programs("trace") as names:
+        again = lc.solve(other, task.init())
+    assert "_run" not in names, names
+    np.testing.assert_array_equal(again.params, sol.params)
+    assert int(again.iterations) == int(sol.iterations)
 
 
 def test_failed_line_search_far_from_feasibility_restarts_and_converges(car_solutions):

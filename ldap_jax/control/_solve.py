@@ -31,7 +31,7 @@ from ._ipm import (
 )
 from ._parameterizations import SampledControls
 from ._riccati import riccati_apply, riccati_factor
-from ._tasks import Task
+from ._tasks import Penalty, Task
 
 __all__ = ["Solution", "solve", "problem_functions", "curvature_integrator"]
 
@@ -265,7 +265,19 @@ def _stopped(tree):
     return jax.tree_util.tree_map(lambda x: jax.lax.stop_gradient(x) if eqx.is_inexact_array(x) else x, tree)
 
 
+def _solver_view(task: Task) -> Task:
+    """``task`` with the fields the solver never reads set to their defaults: its name, the
+    penalty form's weights and memory policy, and the settings of its initial guess. They are
+    static (part of a compiled program's key), so without this two tasks that differ only there
+    compiled the interior-point program twice: ``parallel_park`` and ``u_turn`` on one grid
+    (both a car, the same N and integrator) each compiled for 4.9 s."""
+    return dataclasses.replace(
+        task, name="", penalty=Penalty(), init_amplitude=0.3, guess=None, checkpoint=False
+    )
+
+
 def _solve(task: Task, params0: Array, options: IPMOptions) -> Solution:
+    task = _solver_view(task)
     # Two programs: the interior-point run, on the task with its derivatives stopped (the
     # iterations are not differentiated), and the optimum, whose derivatives come from the
     # implicit function theorem. Under jax.grad, jax.jvp or jax.jacfwd of a caller that nothing
