@@ -555,6 +555,8 @@ def test_optimize_compiles_once_keeps_terms_and_stops(park40):
     np.testing.assert_allclose(sum(v[3] for v in res.aux.values()), res.losses[3], rtol=1e-12)
     stopped = lc.optimize(task.loss, p0, n_iterations=400, chunk=10, tol=1e-3)
     assert bool(stopped.converged) and stopped.iterations < 400
+    # the tolerance is traced: another tol ran the same compiled chunk
+    assert _optimize._run_chunk._cached._cache_size() - before == 1
 
 
 def test_optimize_takes_any_optax_transformation():

@@ -69,7 +69,7 @@ def _strong(tree):
     return jax.tree_util.tree_map(lambda x: jnp.asarray(x, x.dtype) if eqx.is_array(x) else x, tree)
 
 
-def _make_chunk(loss_fn: Callable, optimizer, n: int, tol: float):
+def _make_chunk(loss_fn: Callable, optimizer, n: int, tol: Array):
     value_aux = _split_loss(loss_fn)
     value_fn = lambda p: value_aux(p)[0]  # noqa: E731
 
@@ -86,7 +86,7 @@ def _make_chunk(loss_fn: Callable, optimizer, n: int, tol: float):
         better = jnp.isfinite(loss) & (loss < best_loss)
         best = jax.tree_util.tree_map(lambda a, b: jnp.where(better, a, b), params, best)
         best_loss = jnp.where(better, loss, best_loss)
-        converged = jnp.abs(prev_loss - loss) <= tol * jnp.maximum(1.0, jnp.abs(loss))
+        converged = jnp.abs(prev_loss - loss) <= tol.astype(loss.dtype) * jnp.maximum(1.0, jnp.abs(loss))
         new_params = optax.apply_updates(params, updates)
         keep = done | converged
         params = jax.tree_util.tree_map(lambda a, b: jnp.where(keep, a, b), params, new_params)
@@ -148,6 +148,11 @@ _NO_PROGRESS = (
     "no authority over their position, and a gradient method cannot leave; start from a guess that "
     "moves the system (task.init()), or use lc.solve, which restarts from perturbed controls"
 )
+
+
+def _traced(tol: float) -> Array:
+    # an array, not a float: a float is static under filter_jit, and each new tol compiled anew
+    return jnp.asarray(tol, jnp.result_type(float))
 
 
 def _check_positive_int(name: str, x: Any) -> int:
@@ -244,7 +249,7 @@ def optimize(
 
         bar = tqdm(total=n_iterations, desc=description)
     for _ in range(n_iterations // chunk):
-        carry, (losses, aux, stopped) = _run_chunk(loss_fn, optimizer, carry, chunk, float(tol))
+        carry, (losses, aux, stopped) = _run_chunk(loss_fn, optimizer, carry, chunk, _traced(tol))
         pieces.append((losses, aux, stopped))
         if bar is not None:
             bar.update(chunk)
@@ -299,7 +304,7 @@ def multistart(
     tol = _check_problem(loss_fn, params0, tol)
     optimizer = _as_extra_args(optimizer)
     best, best_loss, losses, aux, done = _run_multistart(
-        loss_fn, optimizer, params0, n_iterations, float(tol)
+        loss_fn, optimizer, params0, n_iterations, _traced(tol)
     )
     never = ~jnp.isfinite(best_loss)
     if bool(jnp.any(never)):
