@@ -32,6 +32,7 @@ from ldap_jax._compilation_cache import FAST_COMPILE_OPTIONS
 # ``users_codegen``: each runs in a child process with the code generation users get
 # (:func:`pytest_pyfunc_call`).
 _USERS = os.environ.get("LDAP_JAX_USERS_CODEGEN") == "1"
+_CHILD = _USERS or os.environ.get("LDAP_JAX_ISOLATED") == "1"  # a child pytest of pytest_pyfunc_call
 if "LDAP_JAX_USER_XLA_FLAGS" not in os.environ:
     os.environ["LDAP_JAX_USER_XLA_FLAGS"] = os.environ.get("XLA_FLAGS", "")
 _OPTIONS = {
@@ -186,11 +187,20 @@ def pytest_sessionfinish(session, exitstatus):
 @pytest.hookimpl(tryfirst=True)
 def pytest_pyfunc_call(pyfuncitem):
     """A ``users_codegen`` test runs in a child pytest with the XLA flags the suite started with
-    (the library's own compile options apply as for any user); it passes if the child passes."""
-    if _USERS or pyfuncitem.get_closest_marker("users_codegen") is None:
+    (the library's own compile options apply as for any user); an ``isolated`` test in a child
+    pytest with the suite's flags (it clears JAX's caches, which in a worker would make every later
+    test there compile again). Either passes if the child passes."""
+    if _CHILD:
         return None
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("PYTEST_", "LDAP_JAX_TEST_FLAGS"))}
-    env.update(XLA_FLAGS=os.environ["LDAP_JAX_USER_XLA_FLAGS"], LDAP_JAX_USERS_CODEGEN="1")
+    users = pyfuncitem.get_closest_marker("users_codegen") is not None
+    if not users and pyfuncitem.get_closest_marker("isolated") is None:
+        return None
+    if users:
+        env = {k: v for k, v in os.environ.items() if not k.startswith(("PYTEST_", "LDAP_JAX_TEST_FLAGS"))}
+        env.update(XLA_FLAGS=os.environ["LDAP_JAX_USER_XLA_FLAGS"], LDAP_JAX_USERS_CODEGEN="1")
+    else:
+        env = {k: v for k, v in os.environ.items() if not k.startswith(("PYTEST_", "LDAP_JAX_TEST_PROFILE"))}
+        env.update(LDAP_JAX_ISOLATED="1")
     cmd = [
         sys.executable,
         "-m",
@@ -200,13 +210,15 @@ def pytest_pyfunc_call(pyfuncitem):
         "no:cacheprovider",
         "-p",
         "no:xdist",
-        pyfuncitem.nodeid,
+        pyfuncitem.nodeid.split("@")[0],  # without xdist's group suffix
     ]
     proc = subprocess.run(
         cmd, env=env, cwd=pyfuncitem.config.rootpath, capture_output=True, text=True, timeout=1800
     )
     if proc.returncode != 0:
         pytest.fail(
-            f"with the users' code generation:\n{proc.stdout[-6000:]}\n{proc.stderr[-2000:]}", pytrace=False
+            f"in a child process ({'with the users code generation' if users else 'isolated'}):\n"
+            f"{proc.stdout[-6000:]}\n{proc.stderr[-2000:]}",
+            pytrace=False,
         )
     return True

@@ -12,6 +12,7 @@ import ldap_jax as lj
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc/self/maps")
+@pytest.mark.isolated  # it empties JAX's caches: in a test worker every later test compiled again
 def test_trim_releases_the_mappings_of_compiled_programs():
     sb = systems()["snakeboard"]
     q0, qdot0, ctl = jax.tree_util.tree_map(lambda x: x[0], maneuvers(sb, 1, seed=0))
