@@ -113,6 +113,12 @@ def discrete_momenta(system, q, hs, alpha):
     return dl_du, mu, out[1:] - inc[:-1]
 
 
+_COMPILE_EVENTS = {
+    "compile": "/jax/core/compile/backend_compile_duration",
+    "trace": "/jax/core/compile/jaxpr_trace_duration",
+}
+
+
 @contextlib.contextmanager
 def compiled_programs(stage: str = "compile"):
     """Yield a list that collects the names of the programs XLA compiles inside the block
@@ -121,11 +127,7 @@ def compiled_programs(stage: str = "compile"):
     from jax._src import monitoring
 
     names: list[str] = []
-    wanted = {
-        "compile": "/jax/core/compile/backend_compile_duration",
-        "trace": "/jax/core/compile/jaxpr_trace_duration",
-    }
-    wanted = wanted[stage]
+    wanted = _COMPILE_EVENTS[stage]
 
     def listen(event, duration, **kwargs):
         if event == wanted:

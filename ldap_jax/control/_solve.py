@@ -271,9 +271,12 @@ def _solver_view(task: Task) -> Task:
     static (part of a compiled program's key), so without this two tasks that differ only there
     compiled the interior-point program twice: ``parallel_park`` and ``u_turn`` on one grid
     (both a car, the same N and integrator) each compiled for 4.9 s."""
-    return dataclasses.replace(
-        task, name="", penalty=Penalty(), init_amplitude=0.3, guess=None, checkpoint=False
-    )
+    defaults = {f.name: f.default for f in dataclasses.fields(Task) if f.name in _UNREAD_BY_SOLVER}
+    return dataclasses.replace(task, name="", penalty=Penalty(), **defaults)
+
+
+#: fields of a Task that only the penalty form and the initial guess read (each has a default)
+_UNREAD_BY_SOLVER = ("guess", "checkpoint", "init_amplitude")
 
 
 def _solve(task: Task, params0: Array, options: IPMOptions) -> Solution:
