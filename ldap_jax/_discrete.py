@@ -40,7 +40,12 @@ class DiscreteDynamics(eqx.Module):
     vmap-able and differentiable; the state is a flat vector of length :attr:`n_state`. Called on
     values (in a notebook, or under a top-level ``jax.grad``/``jax.jacfwd``) each method runs as
     one compiled program, compiled once for all later values; inside your ``jax.jit`` it is traced
-    inline into your program.
+    inline into your program. To compile a method on its own, use ``eqx.filter_jit(dyn.step)``
+    or ``jax.jit(lambda x, u0, u1: dyn.step(x, u0, u1))``: ``jax.jit(dyn.step)`` fails, as for any
+    equinox module holding arrays (a bound method must be hashable for ``jax.jit``).
+
+    Arguments are checked when a method is traced: a state, configuration or control of the wrong
+    shape raises a ``ValueError`` naming it and the expected length.
 
     Attributes:
         system, integrator: the model and the scheme.
@@ -67,6 +72,13 @@ class DiscreteDynamics(eqx.Module):
     @property
     def n_controls(self) -> int:
         return self.system.n_controls
+
+    def _checked(self, name: str, x: ArrayLike, size: int | str) -> Array:
+        """``x`` as a float array of shape ``(size,)``, or an error naming ``name`` (shapes are
+        static, so this runs once, when the method is traced)."""
+        n = {"x": self.n_state, "q": self.system.n_config, "u": self.n_controls}[size]
+        what = {"x": "n_state", "q": "n_config", "u": "n_controls"}[size]
+        return check_array(name, x, (n,), f"({what} of this {type(self.system).__name__} discretization)")
 
     def _minimal(self) -> bool:
         return isinstance(self.integrator, RDP)
@@ -119,7 +131,11 @@ class DiscreteDynamics(eqx.Module):
         """The flat state at node 0 from a configuration and a velocity on the constraints
         (kinematic entries of ``qdot0`` are taken from ``u0``)."""
         system = self.system
-        q0, qdot0, u0 = jnp.asarray(q0), jnp.asarray(qdot0), jnp.asarray(u0)
+        q0, qdot0, u0 = (
+            self._checked("q0", q0, "q"),
+            self._checked("qdot0", qdot0, "q"),
+            self._checked("u0", u0, "u"),
+        )
         qdot0 = system.consistent_qdot(q0, qdot0, u0)
         c = self.stage_controls(u0, u0)
         return self.pack(self.integrator.init(system, self.h, q0, qdot0, c))
@@ -136,7 +152,8 @@ class DiscreteDynamics(eqx.Module):
     @compiled_unless_staged
     def step_with_info(self, x, u0, u1, k=0):
         """``(x_{k+1}, StepInfo)``: the step's result code and residual."""
-        u0, u1 = jnp.asarray(u0, x.dtype), jnp.asarray(u1, x.dtype)
+        x = self._checked("x", x, "x")
+        u0, u1 = (self._checked(name, u, "u").astype(x.dtype) for name, u in (("u0", u0), ("u1", u1)))
         state = self.unpack(x, u0)
         state, info = self.integrator.step(self.system, self.h, state, self.stage_controls(u0, u1))
         return self.pack(state), info
@@ -145,13 +162,15 @@ class DiscreteDynamics(eqx.Module):
     def observe(self, x: Float[Array, " n"], u: ArrayLike) -> Observation:
         """The node held by ``x``: configuration, velocity (from the momenta for RDP) and the
         diagnostics, with ``u`` the controls at the node."""
-        u = jnp.asarray(u, x.dtype)
+        x = self._checked("x", x, "x")
+        u = self._checked("u", u, "u").astype(x.dtype)
         return self.integrator.observe(self.system, self.unpack(x, u), u)
 
     @compiled_unless_staged
     def node(self, x: Float[Array, " n"], u: ArrayLike) -> tuple[Array, Array]:
         """``(q, qdot)`` held by ``x`` (no diagnostics: the light path for costs and constraints)."""
-        u = jnp.asarray(u, x.dtype)
+        x = self._checked("x", x, "x")
+        u = self._checked("u", u, "u").astype(x.dtype)
         return self.integrator.node(self.system, self.unpack(x, u), u)
 
     @compiled_unless_staged
@@ -174,7 +193,7 @@ def discretize(
     ``lj.RDP()``) on ``system`` with step ``h`` (s).
 
     Raises:
-        TypeError, ValueError: a bad system, integrator or step.
+        TypeError, ValueError: a bad system, integrator, step or start time.
     """
     integrator = RDP() if integrator is None else integrator
     if not isinstance(system, AbstractSystem):
@@ -182,8 +201,11 @@ def discretize(
     if not isinstance(integrator, AbstractIntegrator):
         raise TypeError(f"'integrator' must be an ldap_jax integrator, got {type(integrator)}")
     h_arr = check_array("h", h, ())
-    if not isinstance(h_arr, jax.core.Tracer) and not bool(h_arr != 0):
-        raise ValueError(f"'h' must be non-zero, got {h}")
+    if not isinstance(h_arr, jax.core.Tracer) and not bool(jnp.isfinite(h_arr) & (h_arr > 0)):
+        raise ValueError(f"'h' must be a positive finite step, got {h}")
+    t0_arr = check_array("t0", t0, ())
+    if not isinstance(t0_arr, jax.core.Tracer) and not bool(jnp.isfinite(t0_arr)):
+        raise ValueError(f"'t0' must be finite, got {t0}")
     dtype = h_arr.dtype
     system, integrator = cast_floats((system, integrator), dtype)
     probe = DiscreteDynamics(system, integrator, h_arr, jnp.asarray(t0, dtype), (0,))

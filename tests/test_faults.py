@@ -651,6 +651,7 @@ def test_divergence_is_not_success():
 # ===================================================================================== control
 PARK = lc.parallel_park(n_steps=N)
 GAIT = lc.forward_gait(n_steps=N)
+DYN = lj.discretize(CAR, lj.RDP(), h=0.1)
 
 
 def _make_task(**kw):
@@ -734,6 +735,31 @@ TASK_RAISES = {
     "solve params0 shape": (lambda: lc.solve(PARK, jnp.zeros((N, 2))), ValueError, "'params0'"),
     "solve params0 nan": (lambda: lc.solve(PARK, jnp.full((N + 1, 2), NAN)), ValueError, "'params0'"),
     "solve params0 str": (lambda: lc.solve(PARK, "zeros"), TypeError, "'params0'"),
+    # lj.discretize and the discrete-time dynamics: checked when traced
+    "discretize h 0": (lambda: lj.discretize(CAR, h=0.0), ValueError, "'h'"),
+    "discretize h<0": (lambda: lj.discretize(CAR, h=-0.1), ValueError, "'h'"),
+    "discretize h nan": (lambda: lj.discretize(CAR, h=NAN), ValueError, "'h'"),
+    "discretize t0 inf": (lambda: lj.discretize(CAR, h=0.1, t0=np.inf), ValueError, "'t0'"),
+    "discretize system": (lambda: lj.discretize("car", h=0.1), TypeError, "'system'"),
+    "dynamics init q0": (
+        lambda: DYN.init(np.zeros(4), np.zeros(5), np.zeros(2)),
+        ValueError,
+        "'q0'.*n_config",
+    ),
+    "dynamics init u0": (
+        lambda: DYN.init(np.zeros(5), np.zeros(5), np.zeros(3)),
+        ValueError,
+        "'u0'.*n_controls",
+    ),
+    "dynamics step x": (lambda: DYN.step(np.zeros(3), np.zeros(2), np.zeros(2)), ValueError, "'x'.*n_state"),
+    "dynamics step u1": (
+        lambda: DYN.step(np.zeros(DYN.n_state), np.zeros(2), np.zeros(1)),
+        ValueError,
+        "'u1'",
+    ),
+    "dynamics observe x": (lambda: DYN.observe(np.zeros(DYN.n_state + 1), np.zeros(2)), ValueError, "'x'"),
+    "dynamics node u": (lambda: DYN.node(np.zeros(DYN.n_state), np.zeros((1, 2))), ValueError, "'u'"),
+    "dynamics rollout us": (lambda: DYN.rollout(np.zeros(DYN.n_state), np.zeros(4)), ValueError, "'u0'"),
     # lc.optimize / lc.multistart: input checks (before compiling)
     "optimize n_iterations 0": (
         lambda: lc.optimize(PARK.value, PARK.init(), n_iterations=0),
