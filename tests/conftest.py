@@ -155,6 +155,15 @@ if _PROFILE:
     _monitoring.register_event_duration_secs_listener(_listen)
     _monitoring.register_event_listener(_count)
 
+    def _collected(phase, info):  # Python's garbage collections: time and count per generation
+        if phase == "start":
+            _STATS["gc_started"] = time.perf_counter()
+        elif "gc_started" in _STATS:
+            total, count = _STATS.get(f"gc{info['generation']}", (0.0, 0))
+            _STATS[f"gc{info['generation']}"] = (total + time.perf_counter() - _STATS.pop("gc_started"), count + 1)
+
+    gc.callbacks.append(_collected)
+
 
 def pytest_runtest_setup(item):
     _STATS["current"] = item.nodeid
@@ -179,6 +188,9 @@ def pytest_sessionfinish(session, exitstatus):
     if out:
         import json
 
+        import resource
+
+        _STATS["max_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
         worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
         pathlib.Path(out).mkdir(parents=True, exist_ok=True)
         (pathlib.Path(out) / f"{worker}.json").write_text(json.dumps(_STATS, indent=1))
