@@ -6,6 +6,9 @@ import re
 import subprocess
 import sys
 
+import equinox as eqx
+import numpy as np
+
 
 def test_readme_quick_example_runs():
     text = (pathlib.Path(__file__).parent.parent / "README.md").read_text()
@@ -51,6 +54,10 @@ def test_readme_discrete_dynamics_example_runs():
     exec(compile(blocks[0], "README.md", "exec"), namespace)  # noqa: S102
     xs = namespace["xs"]
     assert xs.shape[0] == 101 and bool(namespace["jnp"].all(namespace["jnp"].isfinite(xs)))
+    # the text below the example: a method compiled alone with eqx.filter_jit is the same step
+    dyn, us = namespace["dyn"], namespace["us"]
+    stepped = eqx.filter_jit(dyn.step)(xs[7], us[7], us[8])
+    np.testing.assert_allclose(np.asarray(stepped), np.asarray(xs[8]), rtol=1e-13, atol=1e-13)
 
 
 def test_readme_all_cores_example_runs_sharded():
