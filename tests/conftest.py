@@ -159,8 +159,9 @@ if _PROFILE:
         if phase == "start":
             _STATS["gc_started"] = time.perf_counter()
         elif "gc_started" in _STATS:
-            total, count = _STATS.get(f"gc{info['generation']}", (0.0, 0))
-            _STATS[f"gc{info['generation']}"] = (total + time.perf_counter() - _STATS.pop("gc_started"), count + 1)
+            key, spent = f"gc{info['generation']}", time.perf_counter() - _STATS.pop("gc_started")
+            total, count = _STATS.get(key, (0.0, 0))
+            _STATS[key] = (total + spent, count + 1)
 
     gc.callbacks.append(_collected)
 
@@ -187,7 +188,6 @@ def pytest_sessionfinish(session, exitstatus):
     out = os.environ.get("LDAP_JAX_TEST_PROFILE")
     if out:
         import json
-
         import resource
 
         _STATS["max_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024

@@ -295,6 +295,11 @@ SIM_RAISES = {
         ValueError,
         "'controls'",
     ),
+    "policy output nan": (
+        dict(controls=lj.Policy(lambda t, q, qd: jnp.full(2, jnp.nan), 2)),
+        ValueError,
+        "'controls' must be finite.*policy",
+    ),
     "policy gain columns": (dict(controls=lj.LinearPolicy(CTL, jnp.zeros((2, 4)))), ValueError, "'controls'"),
     "q0 shape": (dict(q0=jnp.zeros(4)), ValueError, "'q0'.*shape"),
     "q0 string": (dict(q0="zeros"), TypeError, "'q0'"),
