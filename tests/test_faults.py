@@ -740,6 +740,15 @@ TASK_RAISES = {
     "solve params0 shape": (lambda: lc.solve(PARK, jnp.zeros((N, 2))), ValueError, "'params0'"),
     "solve params0 nan": (lambda: lc.solve(PARK, jnp.full((N + 1, 2), NAN)), ValueError, "'params0'"),
     "solve params0 str": (lambda: lc.solve(PARK, "zeros"), TypeError, "'params0'"),
+    # parameters of the wrong shape, wherever they enter (checked when traced)
+    "replay params shape": (lambda: lc.replay(PARK, jnp.zeros(3)), ValueError, "'params'.*N \\+ 1"),
+    "value params shape": (lambda: PARK.value(jnp.zeros((N, 2))), ValueError, "'params'"),
+    "gait params": (lambda: GAIT.controls((jnp.zeros((2, 1)),)), ValueError, "'params'.*amplitudes"),
+    "gait params shape": (
+        lambda: GAIT.value(jax.tree_util.tree_map(lambda x: x[:1], GAIT.init())),
+        ValueError,
+        "'params'",
+    ),
     # lj.discretize and the discrete-time dynamics: checked when traced
     "discretize h 0": (lambda: lj.discretize(CAR, h=0.0), ValueError, "'h'"),
     "discretize h<0": (lambda: lj.discretize(CAR, h=-0.1), ValueError, "'h'"),

@@ -58,10 +58,15 @@ class SampledControls(AbstractParameterization):
         self.n_steps = n_steps
 
     def controls(self, params: Float[Array, "K n"]) -> Sampled:
-        return Sampled(params * self.scale[None, :], self.t_final, self.t0)
+        return Sampled(self.values(params), self.t_final, self.t0)
 
     def values(self, params: Float[Array, "K n"]) -> Float[Array, "K n"]:
         """Control values at the step times (for effort and bounds)."""
+        shape = (self.n_steps + 1, self.scale.shape[0])
+        if jnp.shape(params) != shape:
+            raise ValueError(
+                f"'params' must have shape {shape} (N + 1 nodes, channels), got {jnp.shape(params)}"
+            )
         return params * self.scale[None, :]
 
     def init(self, key=None, *, amplitude=0.3, n_modes: int = 3):
@@ -111,6 +116,15 @@ class SinusoidGait(AbstractParameterization):
         self.shared_frequency = shared_frequency
 
     def controls(self, params) -> Sinusoids:
+        n, m = self.scale.shape[0], self.n_terms
+        expected = ((n, m), (1, m) if self.shared_frequency else (n, m), (n, m))
+        shapes = (
+            tuple(jnp.shape(x) for x in params) if isinstance(params, (tuple, list)) else jnp.shape(params)
+        )
+        if shapes != expected:
+            raise ValueError(
+                f"'params' must be (amplitudes, frequencies, phases) of shapes {expected}, got {shapes}"
+            )
         a, w, p = params
         w = jnp.broadcast_to(w, a.shape)
         return Sinusoids(a * self.scale[:, None], w, p)
