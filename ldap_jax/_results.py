@@ -33,7 +33,9 @@ class RESULTS(eqx.Enumeration):
     not_converged = (
         "the implicit solve (Newton) did not converge: the step is too large (the root may "
         "have vanished in a fold of the discrete equations). Reduce the step or raise the "
-        "integrator's newton_iterations."
+        "integrator's newton_iterations. For a System of your own, also check that its kinetic "
+        "energy is positive definite in the velocities the forces drive (else the Newton matrix is "
+        "singular at every step)."
     )
     diverged = (
         "diverged: the energy balance E - E0 - W grew past `divergence` times the energy scale "
