@@ -73,11 +73,12 @@ class DiscreteDynamics(eqx.Module):
     def n_controls(self) -> int:
         return self.system.n_controls
 
-    def _checked(self, name: str, x: ArrayLike, size: int | str) -> Array:
-        """``x`` as a float array of shape ``(size,)``, or an error naming ``name`` (shapes are
-        static, so this runs once, when the method is traced)."""
-        n = {"x": self.n_state, "q": self.system.n_config, "u": self.n_controls}[size]
-        what = {"x": "n_state", "q": "n_config", "u": "n_controls"}[size]
+    def _checked(self, name: str, x: ArrayLike, kind: str) -> Array:
+        """``x`` as a float vector of the length of its ``kind`` (``"x"`` a state, ``"q"`` a
+        configuration, ``"u"`` controls), or an error naming ``name`` (shapes are static, so
+        this runs once, when the method is traced)."""
+        n = {"x": self.n_state, "q": self.system.n_config, "u": self.n_controls}[kind]
+        what = {"x": "n_state", "q": "n_config", "u": "n_controls"}[kind]
         return check_array(name, x, (n,), f"({what} of this {type(self.system).__name__} discretization)")
 
     def _minimal(self) -> bool:

@@ -195,7 +195,7 @@ def raise_if_concrete(system, integrator, q0, qdot0, controls, t0, t_final, chec
 
         if check_constraints and is_concrete((system, q0, qdot0, controls, t0)):
             finite_c0, viol, tol = (float(x) for x in initial_violation(system, q0, qdot0, controls, t0))
-            if not finite_c0:  # a policy's output, or controls that are finite data but not values
+            if not finite_c0:  # a policy's output at t0 (open-loop controls' data were checked above)
                 raise ValueError(
                     f"'controls' must be finite: their value at t0 = {float(np.asarray(t0)):g} is not "
                     "(for a policy, its output at (t0, q0, qdot0))"
