@@ -12,7 +12,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ._compilation_cache import jit, note_program, program_key
 from ._controls import AbstractControls, Constant
-from ._policy import AbstractPolicy, LinearPolicy
+from ._policy import AbstractPolicy, LinearPolicy, Policy
 from ._results import RESULTS
 from ._rollout import check_checkpoint, check_save, rollout
 from ._typing import ArrayLike
@@ -96,10 +96,12 @@ def check_problem(
     if controls is None:
         controls = Constant(jnp.zeros(system.n_controls, jnp.result_type(float)))
     kinds = (AbstractControls, AbstractPolicy) if policies else (AbstractControls,)
+    if policies and callable(controls) and not isinstance(controls, kinds):
+        controls = Policy(controls, system.n_controls)  # a function (or callable module): a feedback law
     if not isinstance(controls, kinds):
         raise TypeError(
             "'controls' must be ldap_jax controls (e.g. lj.Sinusoids)"
-            + (", a policy (lj.Policy)" if policies else " (open loop)")
+            + (", a policy (lj.Policy, or a function u = f(t, q, qdot))" if policies else " (open loop)")
             + f" or None, got {type(controls)}"
         )
     if controls.n_channels != system.n_controls:
@@ -154,7 +156,9 @@ def simulate(
             ``sigma_dot``) are taken from the controls at ``t0``.
         controls: open-loop controls with ``system.n_controls`` channels (e.g.
             :class:`~ldap_jax.Sinusoids`), a feedback policy (:class:`~ldap_jax.Policy`,
-            ``u = pi(t, q, qdot)``), or ``None`` for none (zero forces and steering rates).
+            ``u = pi(t, q, qdot)``; a plain function ``pi(t, q, qdot)`` is taken as
+            ``lj.Policy(pi, system.n_controls)``), or ``None`` for none (zero forces and
+            steering rates).
         t_final: end time (s), ``> t0``.
         n_steps: number of steps N (static: each new N compiles once). For compositions
             (``RDP(order=4 | 6)``) the number of composed steps.
@@ -243,7 +247,15 @@ def _check_policy(policy: AbstractPolicy, q0: Array, qdot0: Array) -> None:
             f"'controls': the LinearPolicy gain must have 2 d = {2 * d} columns (x = (q, qdot)), "
             f"got shape {tuple(jnp.shape(policy.gain))}"
         )
-    out = eqx.filter_eval_shape(lambda p, t, q, qd: p(t, q, qd), policy, jnp.zeros((), q0.dtype), q0, qdot0)
+    try:
+        out = eqx.filter_eval_shape(
+            lambda p, t, q, qd: p(t, q, qd), policy, jnp.zeros((), q0.dtype), q0, qdot0
+        )
+    except TypeError as err:  # e.g. a function of t alone
+        raise TypeError(
+            f"'controls': calling the policy as f(t, q, qdot) failed ({err}); for controls that "
+            "depend on time alone use lj.Sampled, lj.Sinusoids or lj.Policy(lambda t, q, qdot: f(t), n)"
+        ) from err
     if not hasattr(out, "shape") or tuple(out.shape) != (policy.n_channels,):
         raise ValueError(
             f"'controls': the policy must return an array of shape ({policy.n_channels},) (its n_channels), "

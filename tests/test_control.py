@@ -106,7 +106,7 @@ def test_discrete_dynamics_called_eagerly_compile_once_and_inline_under_jit():
 
 def test_policy_with_zero_feedback_equals_open_loop():
     """A linear feedback policy with zero gain reproduces its feedforward applied open-loop; with a
-    gain it changes the run and still works under vmap."""
+    gain it changes the run and still works under vmap; a plain function f(t, q, qdot) is a policy."""
     car = lj.Car()
     q0, qdot0, ctl = car.sample_maneuver(jax.random.PRNGKey(2))
     kw = dict(t_final=4.0, n_steps=80)
@@ -118,8 +118,14 @@ def test_policy_with_zero_feedback_equals_open_loop():
     gain = jnp.zeros((2, 10)).at[0, 5].set(-0.05)  # damp the wheel rate around zero
     damped = lj.simulate(car, q0, qdot0, lj.LinearPolicy(ctl, gain), **kw)
     assert float(jnp.max(jnp.abs(damped.q - open_loop.q))) > 1e-3
-    fn = lj.Policy(lambda t, q, qd: ctl(t), 2)
-    np.testing.assert_allclose(lj.simulate(car, q0, qdot0, fn, **kw).q, open_loop.q, atol=1e-13)
+
+    def law(t, q, qd):
+        return ctl(t)
+
+    by_policy = lj.simulate(car, q0, qdot0, lj.Policy(law, 2), **kw)
+    np.testing.assert_allclose(by_policy.q, open_loop.q, atol=1e-13)
+    # a plain function is the same feedback law (lj.Policy(law, n_controls)): the same program
+    np.testing.assert_array_equal(lj.simulate(car, q0, qdot0, law, **kw).q, by_policy.q)
 
 
 # ------------------------------------------------------------------------------------- the solver

@@ -288,7 +288,12 @@ def _simulate(**kw):
 SIM_RAISES = {
     "system": (dict(system="snakeboard"), TypeError, "'system'"),
     "integrator": (dict(integrator="rdp"), TypeError, "'integrator'"),
-    "controls function": (dict(controls=lambda t: jnp.zeros(2)), TypeError, "'controls'"),
+    "controls function of t": (
+        dict(controls=lambda t: jnp.zeros(2)),
+        TypeError,
+        "'controls'.*f\\(t, q, qdot\\)",
+    ),
+    "controls not callable": (dict(controls=np.zeros(2)), TypeError, "'controls'"),
     "controls channels": (dict(controls=lj.Constant(jnp.zeros(3))), ValueError, "'controls'"),
     "policy output shape": (
         dict(controls=lj.Policy(lambda t, q, qd: jnp.zeros(3), 2)),
