@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 from typing import Any
 
 import equinox as eqx
@@ -125,7 +126,7 @@ def simulate(
     system: AbstractSystem,
     q0: ArrayOrSequence,
     qdot0: ArrayOrSequence,
-    controls: AbstractControls | AbstractPolicy | None = None,
+    controls: AbstractControls | AbstractPolicy | Callable | None = None,
     *,
     t_final: ArrayLike,
     n_steps: int,
