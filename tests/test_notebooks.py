@@ -63,7 +63,7 @@ def notebook_report(tmp_path_factory):
     for path in NOTEBOOKS:
         shutil.copy(path, work / path.name)
     out = work / "report.json"
-    env = dict(os.environ, MPLBACKEND="Agg", LDAP_JAX_NOTEBOOK_TEST="1")
+    env = dict(os.environ, MPLBACKEND="Agg")
     res = subprocess.run(
         [sys.executable, "-c", RUNNER, str(out), *(p.name for p in NOTEBOOKS)],
         cwd=work,
