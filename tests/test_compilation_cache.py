@@ -19,14 +19,16 @@ def test_trim_releases_the_mappings_of_compiled_programs():
     lj.trim_compilation_cache(1e-9)  # start from empty caches
     before = lj.memory_mappings()[0]
     for n in (11, 12):  # two programs (n_steps is static)
-        lj.simulate(sb, q0, qdot0, ctl, t_final=1.0, n_steps=n, integrator=lj.DLA()).q.block_until_ready()
+        lj.simulate(sb, q0, qdot0, ctl, t_final=1.0, n_steps=n).q.block_until_ready()
     grown = lj.memory_mappings()[0]
-    assert grown > before + 100  # hundreds of mappings per compiled DLA rollout
+    # hundreds of mappings per compiled rollout (measured: 814 for these two RDP rollouts, 752 for
+    # the same with DLA, whose programs take 3x longer to compile)
+    assert grown > before + 100
     assert not lj.trim_compilation_cache(1.0)  # far below the limit: nothing to do
     assert lj.trim_compilation_cache(1e-9)
     assert lj.memory_mappings()[0] < grown - 100
     # the library still works after the caches are gone
-    traj = lj.simulate(sb, q0, qdot0, ctl, t_final=1.0, n_steps=11, integrator=lj.DLA())
+    traj = lj.simulate(sb, q0, qdot0, ctl, t_final=1.0, n_steps=11)
     assert bool(jnp.all(jnp.isfinite(traj.q)))
 
 
