@@ -28,6 +28,8 @@ from ._policy import Policy as Policy
 from ._reference import Solution as Solution
 from ._reference import reference as reference
 from ._results import RESULTS as RESULTS
+from ._sharding import device_mesh as device_mesh
+from ._sharding import shard_vmap as shard_vmap
 from ._simulate import Trajectory as Trajectory
 from ._simulate import simulate as simulate
 from .integrators import DLA as DLA

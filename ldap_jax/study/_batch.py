@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp
@@ -12,18 +11,12 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from .._compilation_cache import jit
+from .._sharding import device_mesh
 from .._simulate import simulate
 from ..integrators import RK4, AbstractIntegrator
 from ..systems import AbstractSystem
 
 __all__ = ["device_mesh", "shard_batch", "batch_rollout", "reference_batch"]
-
-
-def device_mesh(devices: Sequence[jax.Device] | None = None) -> Mesh:
-    """A one-axis mesh ``("batch",)`` over ``devices`` (default: all of ``jax.devices()``, i.e.
-    every GPU of the node, or of every host after ``jax.distributed.initialize()``)."""
-    devices = jax.devices() if devices is None else list(devices)
-    return Mesh(np.asarray(devices), ("batch",))
 
 
 def shard_batch(tree, mesh: Mesh):

@@ -1,0 +1,145 @@
+"""A batch split over devices: :func:`shard_vmap`, and the one-axis mesh it uses by default.
+
+``jax.vmap`` runs a batch as one program on one device; on a CPU that is one core, whatever the
+machine has. :func:`shard_vmap` is ``jax.vmap`` with the batch split over the devices of a mesh
+by ``jax.shard_map``, so that each device runs the vmapped function on its own members, with its
+own loops: a ``while_loop`` under ``vmap`` runs until the slowest member in the batch is done,
+and here until the slowest member on each device is. On a CPU, make one device per core before
+JAX starts (``XLA_FLAGS=--xla_force_host_platform_device_count=N``).
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, PartitionSpec
+
+from ._compilation_cache import jit
+
+__all__ = ["device_mesh", "shard_vmap"]
+
+_AXIS = "batch"
+
+
+def device_mesh(devices: Sequence[jax.Device] | None = None) -> Mesh:
+    """A one-axis mesh ``("batch",)`` over ``devices`` (default: all of ``jax.devices()``, i.e.
+    every GPU of the node, or of every host after ``jax.distributed.initialize()``)."""
+    devices = jax.devices() if devices is None else list(devices)
+    return Mesh(np.asarray(devices), (_AXIS,))
+
+
+def shard_vmap(
+    fn: Callable, *, in_axes: int | None | Sequence[int | None] = 0, mesh: Mesh | None = None
+) -> Callable:
+    """``jax.vmap(fn, in_axes)`` as one compiled program whose batch is split over the devices of
+    ``mesh`` (default: :func:`device_mesh`, all devices).
+
+    The batch is padded to a multiple of the number of devices (with copies of its last member,
+    dropped from the result), split evenly (``jax.shard_map``), and each device runs
+    ``jax.vmap(fn)`` on its part: its loops run until its own members are done, not the whole
+    batch's. The result equals ``jax.vmap(fn, in_axes)(*args)``, up to the round-off of another
+    compiled program. The program compiles with :func:`ldap_jax.compiler_options`, and once per
+    argument structure and shapes (keep the returned function, as with ``jax.jit``).
+
+    Measured on 2 CPU cores (two host devices), 16 ``lc.solve`` calls on perturbed
+    ``parallel_park`` goals: 0.27-0.36 s against 0.44-0.63 s for ``jax.vmap``; 64: 1.33 s against
+    2.22 s.
+
+    Args:
+        fn: the function of one member; its outputs are arrays (or pytrees of arrays and static
+            values, such as a :class:`~ldap_jax.control.Solution`).
+        in_axes: ``0`` (every positional argument is batched along its leading axis), ``None``
+            (none is), or one of ``0``/``None`` per positional argument (``None``: the same for
+            every member, e.g. a task or a model).
+        mesh: a mesh with one axis (default: all devices).
+
+    Returns:
+        A function of the same positional arguments, returning ``fn``'s outputs with a leading
+        batch axis.
+
+    Raises:
+        ValueError: (when called) no argument is batched, batched leaves that are not arrays or
+            disagree on the batch size, an empty batch, a bad ``in_axes``, a mesh with more than
+            one axis.
+
+    Example:
+        >>> solve_all = lj.shard_vmap(lambda g: lc.solve(task.with_options(goal=g)).params)
+        >>> params = solve_all(goals)  # goals (B, 3)
+    """
+    if mesh is not None and len(mesh.axis_names) != 1:
+        raise ValueError(f"'mesh' must have one axis, got {mesh.axis_names}")
+
+    @functools.wraps(fn)
+    def batched(*args):
+        axes = _in_axes(in_axes, len(args))
+        n = _batch_size(args, axes)
+        m = device_mesh() if mesh is None else mesh
+        return _program(fn, m, axes, n, args)
+
+    return batched
+
+
+def _in_axes(in_axes, n_args: int) -> tuple[int | None, ...]:
+    axes = tuple(in_axes) if isinstance(in_axes, (tuple, list)) else (in_axes,) * n_args
+    if len(axes) != n_args or any(a not in (0, None) or isinstance(a, bool) for a in axes):
+        raise ValueError(
+            f"'in_axes' must be 0, None, or one of 0/None per positional argument ({n_args}), got {in_axes!r}"
+        )
+    if 0 not in axes:
+        raise ValueError("shard_vmap needs at least one batched argument (an in_axes of 0)")
+    return axes
+
+
+def _batch_size(args: tuple, axes: tuple) -> int:
+    sizes = set()
+    for i, (arg, axis) in enumerate(zip(args, axes)):
+        if axis is None:
+            continue
+        for leaf in jax.tree_util.tree_leaves(arg):
+            if not eqx.is_array_like(leaf) or np.ndim(leaf) == 0:
+                raise ValueError(
+                    f"argument {i} is batched (in_axes 0): every leaf must be an array with a leading "
+                    f"batch axis, got {type(leaf).__name__} of shape {np.shape(leaf)}"
+                )
+            sizes.add(np.shape(leaf)[0])
+    if len(sizes) != 1:
+        raise ValueError(f"the batched arguments disagree on the batch size: {sorted(sizes)}")
+    n = sizes.pop()
+    if n == 0:
+        raise ValueError("an empty batch")
+    return n
+
+
+@jit
+def _program(fn: Callable, mesh: Mesh, axes: tuple, n: int, args: tuple):
+    size = mesh.devices.size
+    pad = (-n) % size
+
+    def padded(x):
+        return jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)]) if pad else x
+
+    args = tuple(jax.tree_util.tree_map(padded, a) if ax == 0 else a for a, ax in zip(args, axes))
+    dynamic, static = eqx.partition(args, eqx.is_array)
+    spec = PartitionSpec(_AXIS)
+    specs = tuple(
+        jax.tree_util.tree_map(lambda _, ax=ax: spec if ax == 0 else PartitionSpec(), d)
+        for d, ax in zip(dynamic, axes)
+    )
+    static_out: list[Any] = []
+
+    def local(dyn):
+        out = jax.vmap(fn, in_axes=axes)(*eqx.combine(dyn, static))
+        out_dynamic, out_static = eqx.partition(out, eqx.is_array)
+        static_out.append(out_static)
+        return out_dynamic
+
+    # check_vma=False: loops whose carries start the same on every device and vary after one trip
+    out = jax.shard_map(local, mesh=mesh, in_specs=(specs,), out_specs=spec, check_vma=False)(dynamic)
+    out = jax.tree_util.tree_map(lambda x: x[:n], out)
+    return eqx.combine(out, static_out[0])
