@@ -196,7 +196,9 @@ def solve(
     states come from a rollout of ``params0``. One compilation per problem structure; jit-,
     vmap- and grad-able: ``jax.grad``/``jax.jacfwd`` of the solution with respect to the task's
     arrays (model parameters, goal) give the sensitivities of the optimum by the implicit function
-    theorem at the solution (not by differentiating the iterations).
+    theorem at the solution (not by differentiating the iterations). A batch of problems
+    (goals, model parameters, starts) under ``jax.vmap`` runs on one device; :func:`ldap_jax.shard_vmap`
+    splits it over the devices (on a CPU, one per core).
 
     Args:
         task: a task with per-step sampled controls (:class:`SampledControls`).

@@ -1,4 +1,4 @@
-"""Batched rollouts sharded over devices, and the study's reference solution."""
+"""Batched rollouts split over devices, and the study's reference solution."""
 
 from __future__ import annotations
 
@@ -10,8 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from .._compilation_cache import jit
-from .._sharding import device_mesh
+from .._sharding import device_mesh, shard_vmap
 from .._simulate import simulate
 from ..integrators import RK4, AbstractIntegrator
 from ..systems import AbstractSystem
@@ -48,24 +47,21 @@ def _gather(x) -> np.ndarray:
     return np.asarray(x)
 
 
-@jit
-def _batched(system, integrator, q0, qdot0, controls, t_final, n_steps: int, n_out: int):
-    def run(a, b, c):
-        traj = simulate(
-            system,
-            a,
-            b,
-            c,
-            t_final=t_final,
-            n_steps=n_steps,
-            integrator=integrator,
-            save=n_steps // n_out,
-            diagnostics=False,
-            check_constraints=False,
-        )
-        return traj.q, traj.result._value
-
-    return jax.vmap(run)(q0, qdot0, controls)
+def _nodes(system, integrator, t_final, n_steps: int, n_out: int, q0, qdot0, controls):
+    """One maneuver's ``n_out + 1`` evenly spaced positions and its result code."""
+    traj = simulate(
+        system,
+        q0,
+        qdot0,
+        controls,
+        t_final=t_final,
+        n_steps=n_steps,
+        integrator=integrator,
+        save=n_steps // n_out,
+        diagnostics=False,
+        check_constraints=False,
+    )
+    return traj.q, traj.result._value
 
 
 def batch_rollout(
@@ -80,11 +76,11 @@ def batch_rollout(
     repeats: int = 0,
 ) -> tuple[np.ndarray, np.ndarray, float]:
     """:func:`ldap_jax.simulate` over a batch of maneuvers ``(q0, qdot0, controls)``, keeping
-    ``n_out + 1`` evenly spaced nodes (positions only, ``save=n_steps // n_out``), the batch axis
-    sharded over ``mesh`` (default: all devices).
+    ``n_out + 1`` evenly spaced nodes (positions only, ``save=n_steps // n_out``), the batch split
+    over the devices of ``mesh`` (default: all devices) by :func:`ldap_jax.shard_vmap`.
 
     Args:
-        repeats: if positive, compile ahead of time, then time ``repeats`` calls.
+        repeats: if positive, a first call (compiling) is not timed, then ``repeats`` calls are.
 
     Returns:
         ``(q_out (B, n_out + 1, d), result codes (B,), seconds)`` with ``seconds`` the median
@@ -95,10 +91,12 @@ def batch_rollout(
     """
     if int(n_steps) % n_out:
         raise ValueError(f"'n_steps' ({n_steps}) must be a multiple of n_out ({n_out})")
-    mesh = device_mesh() if mesh is None else mesh
-    (q0, qdot0, ctl), n = shard_batch(maneuvers, mesh)
-    args = (system, integrator, q0, qdot0, ctl, jnp.asarray(t_final, q0.dtype), int(n_steps), int(n_out))
-    run = _batched.lower(*args).compile() if repeats else _batched
+    q0, qdot0, ctl = maneuvers
+    run = shard_vmap(_nodes, in_axes=(None,) * 5 + (0, 0, 0), mesh=mesh)
+    t_final = jnp.asarray(t_final, jnp.asarray(q0).dtype)
+    args = (system, integrator, t_final, int(n_steps), int(n_out), q0, qdot0, ctl)
+    if repeats:
+        jax.block_until_ready(run(*args))
     times = []
     q_out = code = None
     for _ in range(max(repeats, 1)):
@@ -106,7 +104,7 @@ def batch_rollout(
         q_out, code = jax.block_until_ready(run(*args))
         times.append(time.perf_counter() - start)
     seconds = float(np.median(times)) if repeats else float("nan")
-    return _gather(q_out)[:n], _gather(code)[:n], seconds
+    return _gather(q_out), _gather(code), seconds
 
 
 def reference_batch(
