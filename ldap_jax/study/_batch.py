@@ -91,9 +91,11 @@ def batch_rollout(
     """
     if int(n_steps) % n_out:
         raise ValueError(f"'n_steps' ({n_steps}) must be a multiple of n_out ({n_out})")
-    q0, qdot0, ctl = maneuvers
+    mesh = device_mesh() if mesh is None else mesh
+    # placed on the devices before the timed calls, padded to a multiple of them
+    (q0, qdot0, ctl), n = shard_batch(maneuvers, mesh)
     run = shard_vmap(_nodes, in_axes=(None,) * 5 + (0, 0, 0), mesh=mesh)
-    t_final = jnp.asarray(t_final, jnp.asarray(q0).dtype)
+    t_final = jnp.asarray(t_final, q0.dtype)
     args = (system, integrator, t_final, int(n_steps), int(n_out), q0, qdot0, ctl)
     if repeats:
         jax.block_until_ready(run(*args))
@@ -104,7 +106,7 @@ def batch_rollout(
         q_out, code = jax.block_until_ready(run(*args))
         times.append(time.perf_counter() - start)
     seconds = float(np.median(times)) if repeats else float("nan")
-    return _gather(q_out), _gather(code), seconds
+    return _gather(q_out)[:n], _gather(code)[:n], seconds
 
 
 def reference_batch(
