@@ -48,8 +48,8 @@ def shard_vmap(
     argument structure and shapes (keep the returned function, as with ``jax.jit``).
 
     Measured on 2 CPU cores (two host devices), 16 ``lc.solve`` calls on perturbed
-    ``parallel_park`` goals: 0.27-0.36 s against 0.44-0.63 s for ``jax.vmap``; 64: 1.33 s against
-    2.22 s.
+    ``parallel_park`` goals: 0.27-0.36 s against 0.44-0.63 s for ``jax.vmap``; 64: 1.17-1.33 s
+    against 1.89-2.22 s.
 
     Args:
         fn: the function of one member; its outputs are arrays (or pytrees of arrays and static
