@@ -139,6 +139,11 @@ SHARDED = textwrap.dedent(
     import ldap_jax as lj
     split = lj.shard_vmap(jnp.sin)(jnp.arange(6.0))
     assert split.shape == (6,) and len(split.sharding.device_set) == 4, split.sharding
+    # reverse mode: the gradient of an argument given once (replicated) sums over the devices
+    def loss(batched):
+        f = batched(lambda a, x: jnp.sin(a * x) * a, in_axes=(None, 0))
+        return lambda a: jnp.sum(f(a, jnp.linspace(0.0, 1.0, 6)) ** 2)
+    np.testing.assert_allclose(jax.grad(loss(lj.shard_vmap))(0.7), jax.grad(loss(jax.vmap))(0.7), rtol=1e-13)
     print("OK")
     """
 )
