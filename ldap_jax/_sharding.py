@@ -45,7 +45,9 @@ def shard_vmap(
     ``jax.vmap(fn)`` on its part: its loops run until its own members are done, not the whole
     batch's. The result equals ``jax.vmap(fn, in_axes)(*args)``, up to the round-off of another
     compiled program. The program compiles with :func:`ldap_jax.compiler_options`, and once per
-    argument structure and shapes (keep the returned function, as with ``jax.jit``).
+    argument structure and shapes (keep the returned function, as with ``jax.jit``). It is
+    differentiable in both modes: the gradient with respect to an argument given once
+    (``in_axes=None``) is summed over the devices.
 
     Measured on 2 CPU cores (two host devices), 16 ``lc.solve`` calls on perturbed
     ``parallel_park`` goals: 0.27-0.36 s against 0.44-0.63 s for ``jax.vmap``; 64: 1.17-1.33 s
