@@ -141,7 +141,19 @@ def _program(fn: Callable, mesh: Mesh, axes: tuple, n: int, args: tuple):
         static_out.append(out_static)
         return out_dynamic
 
-    # check_vma=False: loops whose carries start the same on every device and vary after one trip
-    out = jax.shard_map(local, mesh=mesh, in_specs=(specs,), out_specs=spec, check_vma=False)(dynamic)
+    out = _shard_map(local, mesh, (specs,), spec)(dynamic)
     out = jax.tree_util.tree_map(lambda x: x[:n], out)
     return eqx.combine(out, static_out[0])
+
+
+def _shard_map(f: Callable, mesh: Mesh, in_specs, out_specs) -> Callable:
+    """``jax.shard_map`` without its check of which values vary over the devices (loops whose
+    carries start the same on every device vary after one trip); ``jax.experimental``'s before
+    JAX 0.6."""
+    if hasattr(jax, "shard_map"):
+        return jax.shard_map(f, mesh=mesh, in_specs=in_specs, out_specs=out_specs, check_vma=False)
+    from jax.experimental.shard_map import shard_map  # pragma: no cover - JAX < 0.6
+
+    return shard_map(
+        f, mesh=mesh, in_specs=in_specs, out_specs=out_specs, check_rep=False
+    )  # pragma: no cover
