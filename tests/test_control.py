@@ -465,10 +465,28 @@ def test_solve_vmaps_over_goals(small_park):
         assert bool(batch.converged[i]) and int(batch.iterations[i]) == int(one.iterations)
 
 
+def test_curvature_tol_is_traced_and_reaches_the_same_optimum(small_park):
+    """The dynamics' curvature from the first iteration (curvature_tol=inf) instead of below a
+    violation of 0.1: the same optimum of parallel_park, and no new interior-point program."""
+    task, p0 = small_park
+    default = lc.solve(task, p0, tol=1e-10)
+    with compiled_programs() as names:
+        early = lc.solve(task, p0, tol=1e-10, curvature_tol=jnp.inf)
+    assert not {"jit(_run)", "jit(_solve)"} & set(names), names
+    assert bool(default.converged) and bool(early.converged)
+    assert int(early.iterations) != int(default.iterations)  # the switch did act (19 and 65)
+    np.testing.assert_allclose(early.cost, default.cost, rtol=1e-12)
+    np.testing.assert_allclose(early.params, default.params, rtol=0, atol=1e-8)
+
+
 def test_solve_bad_inputs_are_clear():
     task = lc.parallel_park(n_steps=40)
     with pytest.raises(ValueError, match="'tol'"):
         lc.solve(task, tol=0.0)
+    with pytest.raises(ValueError, match="'curvature_tol'"):
+        lc.solve(task, curvature_tol=0.0)
+    with pytest.raises(TypeError, match="'curvature_tol'"):
+        lc.solve(task, curvature_tol="inf")
     with pytest.raises(ValueError, match="'max_iterations'"):
         lc.solve(task, max_iterations=0)
     with pytest.raises(ValueError, match="'hessian'"):
