@@ -3,7 +3,6 @@ import os
 import pathlib
 import subprocess
 import sys
-import time
 
 import jax
 import pytest
@@ -132,68 +131,14 @@ def pytest_collection_modifyitems(config, items):
             )
 
 
-# Opt-in profile of where a worker's time goes: LDAP_JAX_TEST_PROFILE=DIR writes one JSON file per
-# worker at the end (JAX's event durations summed by name, their counts, and the cache trims;
-# per test: the wall time, the compile, trace and lowering times and the number of programs compiled).
-_STATS: dict = {"trims": 0}
-_PROFILE = bool(os.environ.get("LDAP_JAX_TEST_PROFILE"))
-if _PROFILE:
-    from jax._src import monitoring as _monitoring
-
-    def _listen(event, duration, **kwargs):
-        total, count = _STATS.get(event, (0.0, 0))
-        _STATS[event] = (total + duration, count + 1)
-        if event.startswith("/jax/core/compile/"):
-            per_test = _STATS.setdefault("tests", {}).setdefault(_STATS.get("current", ""), {})
-            per_test[event] = per_test.get(event, 0.0) + duration
-            if event.endswith("backend_compile_duration"):  # how many programs (op by op: many)
-                per_test["programs"] = per_test.get("programs", 0) + 1
-
-    def _count(event, **kwargs):
-        _STATS[event] = _STATS.get(event, 0) + 1
-
-    _monitoring.register_event_duration_secs_listener(_listen)
-    _monitoring.register_event_listener(_count)
-
-    def _collected(phase, info):  # Python's garbage collections: time and count per generation
-        if phase == "start":
-            _STATS["gc_started"] = time.perf_counter()
-        elif "gc_started" in _STATS:
-            key, spent = f"gc{info['generation']}", time.perf_counter() - _STATS.pop("gc_started")
-            total, count = _STATS.get(key, (0.0, 0))
-            _STATS[key] = (total + spent, count + 1)
-
-    gc.callbacks.append(_collected)
-
-
-def pytest_runtest_setup(item):
-    _STATS["current"] = item.nodeid
-    if _PROFILE:  # for the profile only: no test asserts anything about time
-        _STATS["started"] = time.perf_counter()
-        _STATS.setdefault("first_test_at", time.time())
+# Where a worker's time goes is measured by a plugin outside the suite (no test reads the clock):
+# LDAP_JAX_TEST_PROFILE=DIR python -m pytest -n 2 --dist loadgroup -p scripts.profile_tests
 
 
 def pytest_runtest_teardown(item, nextitem):
-    if _PROFILE and "started" in _STATS:  # setup + call wall time; when the worker went idle
-        per_test = _STATS.setdefault("tests", {}).setdefault(item.nodeid, {})
-        per_test["wall"] = time.perf_counter() - _STATS.pop("started")
-        _STATS["last_test_at"] = time.time()
     # Each compiled program holds hundreds of memory mappings on XLA's CPU backend; a test worker
     # that compiles a few hundred programs would cross vm.max_map_count and crash inside XLA.
-    if lj.trim_compilation_cache(0.4):
-        _STATS["trims"] += 1
-
-
-def pytest_sessionfinish(session, exitstatus):
-    out = os.environ.get("LDAP_JAX_TEST_PROFILE")
-    if out:
-        import json
-        import resource
-
-        _STATS["max_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-        worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
-        pathlib.Path(out).mkdir(parents=True, exist_ok=True)
-        (pathlib.Path(out) / f"{worker}.json").write_text(json.dumps(_STATS, indent=1))
+    lj.trim_compilation_cache(0.4)
 
 
 @pytest.hookimpl(tryfirst=True)
@@ -211,7 +156,7 @@ def pytest_pyfunc_call(pyfuncitem):
         env = {k: v for k, v in os.environ.items() if not k.startswith(("PYTEST_", "LDAP_JAX_TEST_FLAGS"))}
         env.update(XLA_FLAGS=os.environ["LDAP_JAX_USER_XLA_FLAGS"], LDAP_JAX_USERS_CODEGEN="1")
     else:
-        env = {k: v for k, v in os.environ.items() if not k.startswith(("PYTEST_", "LDAP_JAX_TEST_PROFILE"))}
+        env = {k: v for k, v in os.environ.items() if not k.startswith("PYTEST_")}
         env.update(LDAP_JAX_ISOLATED="1")
     cmd = [
         sys.executable,
