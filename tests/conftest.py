@@ -27,13 +27,10 @@ from ldap_jax._compilation_cache import FAST_COMPILE_OPTIONS
 # At -O0 the same operation can round differently in a vectorised and a scalar loop: `a * b + c`
 # is fused into one rounding (FMA) in one and not the other (258 of 1001 random values differ
 # between a vectorised map and a scan; tanh 434), which XLA's default code generation does not do.
-# Tests whose assertion is bit-for-bit agreement between two compiled programs are marked
-# ``users_codegen``: each runs in a child process with the code generation users get
-# (:func:`pytest_pyfunc_call`).
-_USERS = os.environ.get("LDAP_JAX_USERS_CODEGEN") == "1"
-_CHILD = _USERS or os.environ.get("LDAP_JAX_ISOLATED") == "1"  # a child pytest of pytest_pyfunc_call
-if "LDAP_JAX_USER_XLA_FLAGS" not in os.environ:
-    os.environ["LDAP_JAX_USER_XLA_FLAGS"] = os.environ.get("XLA_FLAGS", "")
+# A test that asserts bit-for-bit agreement between two compiled programs must therefore compare
+# programs that vectorise alike; the one such test (test_simulate's save options: one trajectory,
+# the same step in every program) holds at this code generation too, and runs in the worker.
+_CHILD = os.environ.get("LDAP_JAX_ISOLATED") == "1"  # a child pytest of pytest_pyfunc_call
 _OPTIONS = {
     **FAST_COMPILE_OPTIONS,
     "xla_llvm_disable_expensive_passes": True,
@@ -52,13 +49,12 @@ def _xla_accepts(flags: str) -> bool:
     return subprocess.run(probe, env=env, capture_output=True, timeout=300).returncode == 0
 
 
-if not _USERS:
-    if "LDAP_JAX_TEST_FLAGS" not in os.environ:
-        _candidates = (_flags({**_OPTIONS, **_NEWER}), _flags(_OPTIONS))
-        os.environ["LDAP_JAX_TEST_FLAGS"] = next((f for f in _candidates if _xla_accepts(f)), "")
-    if os.environ["LDAP_JAX_TEST_FLAGS"] not in os.environ.get("XLA_FLAGS", ""):
-        _merged = f"{os.environ.get('XLA_FLAGS', '')} {os.environ['LDAP_JAX_TEST_FLAGS']}"
-        os.environ["XLA_FLAGS"] = _merged.strip()
+if "LDAP_JAX_TEST_FLAGS" not in os.environ:
+    _candidates = (_flags({**_OPTIONS, **_NEWER}), _flags(_OPTIONS))
+    os.environ["LDAP_JAX_TEST_FLAGS"] = next((f for f in _candidates if _xla_accepts(f)), "")
+if os.environ["LDAP_JAX_TEST_FLAGS"] not in os.environ.get("XLA_FLAGS", ""):
+    _merged = f"{os.environ.get('XLA_FLAGS', '')} {os.environ['LDAP_JAX_TEST_FLAGS']}"
+    os.environ["XLA_FLAGS"] = _merged.strip()
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")
@@ -143,21 +139,13 @@ def pytest_runtest_teardown(item, nextitem):
 
 @pytest.hookimpl(tryfirst=True)
 def pytest_pyfunc_call(pyfuncitem):
-    """A ``users_codegen`` test runs in a child pytest with the XLA flags the suite started with
-    (the library's own compile options apply as for any user); an ``isolated`` test in a child
-    pytest with the suite's flags (it clears JAX's caches, which in a worker would make every later
-    test there compile again). Either passes if the child passes."""
-    if _CHILD:
+    """An ``isolated`` test runs in a child pytest with the suite's flags (it clears JAX's caches,
+    which in a worker would make every later test there compile again); it passes if the child
+    passes."""
+    if _CHILD or pyfuncitem.get_closest_marker("isolated") is None:
         return None
-    users = pyfuncitem.get_closest_marker("users_codegen") is not None
-    if not users and pyfuncitem.get_closest_marker("isolated") is None:
-        return None
-    if users:
-        env = {k: v for k, v in os.environ.items() if not k.startswith(("PYTEST_", "LDAP_JAX_TEST_FLAGS"))}
-        env.update(XLA_FLAGS=os.environ["LDAP_JAX_USER_XLA_FLAGS"], LDAP_JAX_USERS_CODEGEN="1")
-    else:
-        env = {k: v for k, v in os.environ.items() if not k.startswith("PYTEST_")}
-        env.update(LDAP_JAX_ISOLATED="1")
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PYTEST_")}
+    env.update(LDAP_JAX_ISOLATED="1")
     cmd = [
         sys.executable,
         "-m",
@@ -174,8 +162,6 @@ def pytest_pyfunc_call(pyfuncitem):
     )
     if proc.returncode != 0:
         pytest.fail(
-            f"in a child process ({'with the users code generation' if users else 'isolated'}):\n"
-            f"{proc.stdout[-6000:]}\n{proc.stderr[-2000:]}",
-            pytrace=False,
+            f"in an isolated child process:\n{proc.stdout[-6000:]}\n{proc.stderr[-2000:]}", pytrace=False
         )
     return True

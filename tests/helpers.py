@@ -38,7 +38,7 @@ def sleigh_batch():
     """Two unforced sleigh maneuvers (pose (x, y, theta), velocities (omega, v_x))."""
     q0 = jnp.array([[0.0, 0.0, 0.4], [1.0, -2.0, -2.5]])
     v0 = jnp.array([[1.5, 0.5], [-2.0, 0.8]])
-    qdot0 = jax.vmap(lambda q, v: SLEIGH.qdot_from_velocities(q, v, jnp.zeros(0)))(q0, v0)
+    qdot0 = jax.jit(jax.vmap(lambda q, v: SLEIGH.qdot_from_velocities(q, v, jnp.zeros(0))))(q0, v0)
     return q0, qdot0, lj.Constant(jnp.zeros((2, 0)))
 
 
@@ -140,13 +140,25 @@ def compiled_programs(stage: str = "compile"):
         monitoring.unregister_event_duration_listener(listen)
 
 
+def _on_host(fn):
+    """``fn`` applied to host copies of concrete leaves (no compiled program per operation and
+    shape, as an eager ``jnp`` operation would be), to the leaves themselves under a trace."""
+
+    def apply(*xs):
+        if any(isinstance(x, jax.core.Tracer) for x in xs):
+            return fn(*xs)
+        return jnp.asarray(fn(*(np.asarray(x) for x in xs)))
+
+    return apply
+
+
 def index(tree, i):
-    return jax.tree_util.tree_map(lambda x: x[i], tree)
+    return jax.tree_util.tree_map(_on_host(lambda x: x[i]), tree)
 
 
 def stack(*trees):
     """Concatenate batches (pytrees with a leading batch axis) along that axis."""
-    return jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs), *trees)
+    return jax.tree_util.tree_map(_on_host(lambda *xs: np.concatenate(xs)), *trees)
 
 
 def fitted_order(hs, errs):
@@ -156,7 +168,8 @@ def fitted_order(hs, errs):
 
 def pose_error(q, q_ref):
     """Max over the batch of the Euclidean error in (x, y, theta)."""
-    return float(jnp.max(jnp.linalg.norm(q[..., :3] - q_ref[..., :3], axis=-1)))
+    q, q_ref = np.asarray(q), np.asarray(q_ref)
+    return float(np.max(np.linalg.norm(q[..., :3] - q_ref[..., :3], axis=-1)))
 
 
 def code(result) -> np.ndarray:
@@ -232,7 +245,7 @@ def simulate_ns(system, integrator, batch, t_final, ns, **options) -> dict[int, 
     q0 = batch[0]
     b = q0.shape[0]
     k = len(ns)
-    tiled = jax.tree_util.tree_map(lambda x: jnp.concatenate([x] * k), batch)
+    tiled = jax.tree_util.tree_map(_on_host(lambda x: np.concatenate([x] * k)), batch)
     scale = np.repeat(np.asarray([n_max // n for n in ns], float), b)
     traj = simulate_batch(system, integrator, tiled, jnp.asarray(t_final * scale, q0.dtype), n_max, **options)
     out = {}
@@ -240,9 +253,9 @@ def simulate_ns(system, integrator, batch, t_final, ns, **options) -> dict[int, 
         sel = slice(j * b, (j + 1) * b)
 
         def nodes(x, sel=sel, n=n):
-            return None if x is None else np.asarray(x[sel, : n + 1])
+            return None if x is None else np.asarray(x)[sel, : n + 1]
 
-        fi = np.asarray(traj.failure_index[sel])
+        fi = np.asarray(traj.failure_index)[sel]
         codes = np.where(fi < n, code(traj.result)[sel], 0)
         out[n] = Run(
             t=nodes(traj.t),
@@ -283,7 +296,7 @@ def simulate_over_alphas(system, batch, alphas, t_final, n_steps, **rdp_options)
         int(n_steps),
         tuple(sorted(rdp_options.items())),
     )
-    return [jax.tree_util.tree_map(lambda x, i=i: x[i], out) for i in range(len(alphas))]
+    return [index(out, i) for i in range(len(alphas))]
 
 
 @eqx.filter_jit

@@ -240,7 +240,6 @@ def test_sampled_controls_reproduce_rdp_on_the_nodes():
         )
 
 
-@pytest.mark.users_codegen  # bit-for-bit across programs / at the round-off floor
 def test_save_options_select_the_same_nodes():
     """save="final", a stride and node indices return exactly those nodes of save="all";
     diagnostics=False keeps the positions and drops the diagnostics."""
