@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, PRNGKeyArray
 
-from .._compilation_cache import compiler_options
+from .._compilation_cache import compiled_unless_staged, compiler_options
 from .._controls import Constant
 from .._reference import reference
 from .._rollout import check_checkpoint
@@ -153,6 +153,7 @@ class Task(eqx.Module):
             n if names.count(n) == 1 else f"{n}{i}": t for i, (n, t) in enumerate(zip(names, self.objective))
         }
 
+    @compiled_unless_staged
     def terms(self, traj: Trajectory, params) -> dict[str, Array]:
         """Every term on a trajectory (objective terms scaled by ``objective_weight``)."""
         ctl = self.controls(params)
@@ -165,8 +166,12 @@ class Task(eqx.Module):
         out.update(evaluate_terms(self.constraint_terms(), self.system, obs, c, self.h, self.q0))
         return out
 
+    @compiled_unless_staged
     def loss(self, params) -> tuple[Array, dict]:
-        """The penalty form ``(J, terms)``: the weighted objective plus the constraint penalties."""
+        """The penalty form ``(J, terms)``: the weighted objective plus the constraint penalties.
+
+        Called on values (or under a top-level ``jax.grad``) it runs as one compiled program,
+        compiled once for all later values; inside your ``jax.jit`` it is traced inline."""
         terms = self.terms(self.rollout(params), params)
         return sum(terms.values()), terms
 
