@@ -389,25 +389,28 @@ class ClosedFormSleigh(lj.systems.AbstractClosedFormSystem):
 
 def test_closed_form_sleigh_matches_its_description():
     """The hand-written sleigh is the library's: same reduced view and continuous equations."""
-    mine, lib = ClosedFormSleigh(), SLEIGH
     rng = np.random.default_rng(0)
+
+    @eqx.filter_jit  # one program, not op by op
+    def views(system, q, v, xi):
+        r = jnp.zeros(0)
+        qdot = system.qdot_from_velocities(q, v, r)
+        return (
+            system.reduced_lagrangian(r, r, xi),
+            qdot,
+            system.velocities_from_qdot(q, ClosedFormSleigh().qdot_from_velocities(q, v, r)),
+            system.velocity_dynamics(q, v, r, r),
+            system.constraint_forms(q),
+        )
+
     for _ in range(5):
         q, v, xi = (jnp.asarray(rng.normal(size=k)) for k in (3, 2, 3))
-        r = jnp.zeros(0)
-        np.testing.assert_allclose(
-            mine.reduced_lagrangian(r, r, xi), lib.reduced_lagrangian(r, r, xi), rtol=1e-15
-        )
-        np.testing.assert_allclose(
-            mine.qdot_from_velocities(q, v, r), lib.qdot_from_velocities(q, v, r), atol=1e-15
-        )
-        qdot = mine.qdot_from_velocities(q, v, r)
-        np.testing.assert_allclose(
-            mine.velocities_from_qdot(q, qdot), lib.velocities_from_qdot(q, qdot), atol=1e-15
-        )
-        np.testing.assert_allclose(
-            mine.velocity_dynamics(q, v, r, r), lib.velocity_dynamics(q, v, r, r), rtol=1e-14, atol=1e-15
-        )
-        np.testing.assert_allclose(mine.constraint_forms(q), lib.constraint_forms(q), atol=0)
+        mine, lib = views(ClosedFormSleigh(), q, v, xi), views(SLEIGH, q, v, xi)
+        np.testing.assert_allclose(mine[0], lib[0], rtol=1e-15)  # the reduced Lagrangian
+        np.testing.assert_allclose(mine[1], lib[1], atol=1e-15)  # qdot from the velocities
+        np.testing.assert_allclose(mine[2], lib[2], atol=1e-15)  # the velocities read back
+        np.testing.assert_allclose(mine[3], lib[3], rtol=1e-14, atol=1e-15)  # velocity dynamics
+        np.testing.assert_allclose(mine[4], lib[4], atol=0)  # the constraint forms
     # the cubic's closed-form root solves it, from h = 0 up, to round-off
     c3 = jnp.asarray([0.0, 1e-12, 1e-6, 1e-3, 1.0, 1e3])
     w = _monotone_cubic_root(c3, jnp.asarray(0.29), jnp.asarray(-0.7))
