@@ -159,7 +159,8 @@ def _racer_case(seed=0):
         phase=[[rng.uniform(0, 6), 0.0]],
     )
     q0 = jnp.array([0.0, 0.0, rng.uniform(-3, 3), rng.uniform(-0.3, 0.3)])
-    qdot0 = RACER.qdot_from_velocities(q0, jnp.asarray(rng.uniform(-0.3, 0.3, size=2)), jnp.zeros(1))
+    v0 = jnp.asarray(rng.uniform(-0.3, 0.3, size=2))
+    qdot0 = eqx.filter_jit(RACER.qdot_from_velocities)(q0, v0, jnp.zeros(1))  # one program, not op by op
     return RACER, q0, qdot0, ctl
 
 

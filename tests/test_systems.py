@@ -117,18 +117,24 @@ def test_snakeboard_momentum_and_its_equation():
 def test_energy_rate_equals_power(name):
     """dE/dt = <f, rdot> (the car's steering does no work)."""
     system = SYSTEMS[name]
-    for _ in range(10):
-        q, v, c, _ = _random_state(system)
+
+    @eqx.filter_jit  # one program, not op by op
+    def rate_and_power(system, q, v, c, cdot):
         f, u_kin = system.inputs(c)
         qdot = system.qdot_from_velocities(q, v, u_kin)
         vdot = system.velocity_dynamics(q, v, f, u_kin)
-        _, u_dot = system.inputs(jnp.asarray(rng.normal(size=2)))
+        _, u_dot = system.inputs(cdot)
 
         def energy(qq, vv, uu):
             return system.energy(qq, system.qdot_from_velocities(qq, vv, uu))
 
         edot = jax.jvp(energy, (q, v, u_kin), (qdot, vdot, u_dot))[1]
-        np.testing.assert_allclose(edot, system.power(f, qdot[3:]), rtol=1e-11, atol=1e-12)
+        return edot, system.power(f, qdot[3:])
+
+    for _ in range(10):
+        q, v, c, _ = _random_state(system)
+        edot, power = rate_and_power(system, q, v, c, jnp.asarray(rng.normal(size=2)))
+        np.testing.assert_allclose(edot, power, rtol=1e-11, atol=1e-12)
 
 
 def test_car_effective_inertia_sign():
