@@ -5,12 +5,14 @@ machine has. :func:`shard_vmap` is ``jax.vmap`` with the batch split over the de
 by ``jax.shard_map``, so that each device runs the vmapped function on its own members, with its
 own loops: a ``while_loop`` under ``vmap`` runs until the slowest member in the batch is done,
 and here until the slowest member on each device is. On a CPU, make one device per core before
-JAX starts (``XLA_FLAGS=--xla_force_host_platform_device_count=N``).
+JAX starts: :func:`use_cpu_cores`.
 """
 
 from __future__ import annotations
 
 import functools
+import os
+import re
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -22,9 +24,52 @@ from jax.sharding import Mesh, PartitionSpec
 
 from ._compilation_cache import jit
 
-__all__ = ["device_mesh", "shard_vmap"]
+__all__ = ["device_mesh", "shard_vmap", "use_cpu_cores"]
 
 _AXIS = "batch"
+_COUNT_FLAG = "--xla_force_host_platform_device_count"
+
+
+def use_cpu_cores(n: int | None = None) -> int:
+    """Ask XLA for ``n`` host (CPU) devices, one per core (default: ``os.cpu_count()``), so that
+    :func:`shard_vmap` and the study split a batch over the cores; it appends
+    ``--xla_force_host_platform_device_count=n`` to ``XLA_FLAGS``.
+
+    XLA reads the flag when JAX's backend starts (the first computation, or ``jax.devices()``):
+    call this after importing the library and before anything runs. A count already in
+    ``XLA_FLAGS`` is kept; once the backend has started nothing changes.
+
+    Returns:
+        The number of host devices JAX has, or will have when it starts.
+
+    Raises:
+        ValueError: ``n`` is not a positive integer.
+
+    Example:
+        >>> import ldap_jax as lj
+        >>> lj.use_cpu_cores()  # e.g. 2 on a 2-core machine
+    """
+    if n is None:
+        n = os.cpu_count() or 1
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+        raise ValueError(f"'n' must be a positive integer, got {n!r}")
+    if _backend_started():
+        return jax.device_count()
+    flags = os.environ.get("XLA_FLAGS", "")
+    given = re.search(rf"{_COUNT_FLAG}=(\d+)", flags)
+    if given:
+        return int(given.group(1))
+    os.environ["XLA_FLAGS"] = f"{flags} {_COUNT_FLAG}={int(n)}".strip()
+    return int(n)
+
+
+def _backend_started() -> bool:
+    try:
+        from jax._src import xla_bridge
+
+        return bool(xla_bridge.backends_are_initialized())
+    except (ImportError, AttributeError):  # pragma: no cover - another JAX: assume it has
+        return True
 
 
 def device_mesh(devices: Sequence[jax.Device] | None = None) -> Mesh:

@@ -20,13 +20,12 @@ import platform
 import time
 from collections.abc import Callable
 
+import ldap_jax as lj
+
 # One XLA host device per core, so the headline is also measured with the batch sharded across
 # cores (one program per core, as the study runs), next to the default single device. Set before
-# jax is imported; everything else here runs on the first device as usual.
-if "xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = (
-        os.environ.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={os.cpu_count() or 1}"
-    )
+# JAX starts; everything else here runs on the first device as usual.
+lj.use_cpu_cores()
 
 import jax
 
@@ -36,7 +35,6 @@ import diffrax
 import jax.numpy as jnp
 import numpy as np
 
-import ldap_jax as lj
 from ldap_jax import study
 
 SYSTEMS = {"car": lj.Car(), "snakeboard": lj.Snakeboard()}

@@ -61,20 +61,17 @@ INTEGRATORS = {
 def _load():
     """Import JAX (float64), NumPy, the library and the CasADi baseline script."""
     global jax, jnp, np, lj, lc, cb
+    import ldap_jax as lj_
+
     # One XLA host device per core, so that the batch is also measured split over the cores
     # (lj.shard_vmap); everything else runs on the first device as usual. Set before JAX starts.
-    if "xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", ""):
-        flags = (
-            f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count={os.cpu_count() or 1}"
-        )
-        os.environ["XLA_FLAGS"] = flags.strip()
+    lj_.use_cpu_cores()
     import jax as jax_
 
     jax_.config.update("jax_enable_x64", True)
     import jax.numpy as jnp_
     import numpy as np_
 
-    import ldap_jax as lj_
     from ldap_jax import control as lc_
 
     sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))

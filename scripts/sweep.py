@@ -164,10 +164,10 @@ def main(argv=None) -> int:
     if args.list:
         print("\n".join(METHOD_NAMES))
         return 0
-    flags = os.environ.get("XLA_FLAGS", "")
-    if "xla_force_host_platform_device_count" not in flags and args.cpu_devices > 1:
-        os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={args.cpu_devices}".strip()
+    import ldap_jax as lj
 
+    if args.cpu_devices > 1:
+        lj.use_cpu_cores(args.cpu_devices)  # before JAX starts
     import jax
 
     jax.config.update("jax_enable_x64", True)

@@ -61,19 +61,21 @@ def test_readme_discrete_dynamics_example_runs():
 
 
 def test_readme_all_cores_example_runs_sharded():
-    """The all-cores snippet, in a fresh interpreter (the device count is fixed at jax import): on 2
+    """The all-cores snippet, in a fresh interpreter (the device count is fixed when JAX starts): on 2
     host devices lj.shard_vmap splits a batch of 7 (padded to 8) and returns every member's
     trajectory, equal to an unsharded vmap of the same members."""
     text = (pathlib.Path(__file__).parent.parent / "README.md").read_text()
     blocks = [b for b in re.findall(r"```python\n(.*?)```", text, re.S) if "shard_vmap" in b]
     assert blocks
     code = (
-        blocks[0].replace("os.cpu_count()", "2").replace("PRNGKey(0), 1000)", "PRNGKey(0), 7)")
+        blocks[0]
+        .replace("lj.use_cpu_cores()", "lj.use_cpu_cores(2)")
+        .replace("PRNGKey(0), 1000)", "PRNGKey(0), 7)")
     )  # small; 2 devices anywhere
-    # compiled with the suite's code generation (conftest), added to the flags the snippet sets
-    flags = "os.environ['XLA_FLAGS'] += ' ' + os.environ.get('LDAP_JAX_TEST_FLAGS', '')\n"
-    assert "\nimport jax\n" in code
-    code = code.replace("\nimport jax\n", "\n" + flags + "import jax\n", 1)
+    assert "lj.use_cpu_cores(2)" in code
+    # compiled with the suite's code generation (conftest); the snippet adds the device count
+    flags = "import os\nos.environ['XLA_FLAGS'] = os.environ.get('LDAP_JAX_TEST_FLAGS', '')\n"
+    code = flags + code
     check = """
 import numpy as np
 out = run(q0, qdot0, ctl)

@@ -1,6 +1,8 @@
 """lj.shard_vmap: jax.vmap with the batch split over devices (one device in this process; four in
 test_study's child process, where the batch is padded and each device runs its own loops)."""
 
+import os
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -53,3 +55,15 @@ def test_shard_vmap_bad_arguments_are_named():
     with pytest.raises(ValueError, match="'mesh'"):
         mesh = jax.sharding.Mesh(np.asarray(jax.devices()).reshape(1, 1), ("a", "b"))
         lj.shard_vmap(jnp.sin, mesh=mesh)
+
+
+def test_use_cpu_cores_keeps_a_started_backend_and_names_bad_counts(monkeypatch):
+    """Once JAX's backend runs (as in this worker), the device count is fixed: the flags are left
+    alone and the devices JAX has are returned; a bad count is named."""
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
+    jax.devices()
+    assert lj.use_cpu_cores(3) == jax.device_count()
+    assert "device_count" not in os.environ["XLA_FLAGS"]
+    for bad in (0, -2, 1.5, True, "2"):
+        with pytest.raises(ValueError, match="'n'"):
+            lj.use_cpu_cores(bad)
