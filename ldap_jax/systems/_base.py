@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
+from .._compilation_cache import compiled_unless_staged
 from .._linalg import solve
 
 __all__ = ["AbstractSystem", "Observation", "body_velocity", "spatial_velocity", "physical_parameter"]
@@ -333,10 +334,12 @@ class AbstractSystem(eqx.Module):
         )
 
     # ----------------------------------------------------------------- derived
+    @compiled_unless_staged
     def energy(self, q: Array, qdot: Array) -> Array:
         """Energy ``E = <dL/dqdot, qdot> - L`` (J)."""
         return self.reduced_energy(q[3:], qdot[3:], body_velocity(q, qdot))
 
+    @compiled_unless_staged
     def momentum(self, q: Array, qdot: Array) -> Float[Array, " c"]:
         """Nonholonomic momentum ``mu_b = <dl/dxi, e_b(r)>`` (paper (7))."""
         return self.reduced_momentum(q[3:], qdot[3:], body_velocity(q, qdot))
@@ -345,6 +348,7 @@ class AbstractSystem(eqx.Module):
         """``|C(r) [xi; u]|``: the constraint violation of the velocity ``(u, xi)``."""
         return jnp.linalg.norm(self.body_constraints(r) @ jnp.concatenate([xi, u]))
 
+    @compiled_unless_staged
     def constraint_residual(self, q: Array, qdot: Array) -> Array:
         """``|omega(q) qdot|`` (Euclidean norm; m/s and rad/s mixed as the constraints are written)."""
         return self.body_constraint_residual(q[3:], qdot[3:], body_velocity(q, qdot))
