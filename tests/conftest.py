@@ -4,11 +4,7 @@ import pathlib
 import subprocess
 import sys
 
-import jax
 import pytest
-
-import ldap_jax as lj  # importing does not start JAX's backend
-from ldap_jax._compilation_cache import FAST_COMPILE_OPTIONS
 
 # XLA's CPU code generation for every program the tests compile (their own jax.jit too), set before
 # JAX starts its backend: the loop emitters the library's entry points compile with
@@ -30,9 +26,7 @@ from ldap_jax._compilation_cache import FAST_COMPILE_OPTIONS
 # A test that asserts bit-for-bit agreement between two compiled programs must therefore compare
 # programs that vectorise alike; the one such test (test_simulate's save options: one trajectory,
 # the same step in every program) holds at this code generation too, and runs in the worker.
-_CHILD = os.environ.get("LDAP_JAX_ISOLATED") == "1"  # a child pytest of pytest_pyfunc_call
 _OPTIONS = {
-    **FAST_COMPILE_OPTIONS,
     "xla_llvm_disable_expensive_passes": True,
     "xla_backend_optimization_level": 0,
 }
@@ -43,45 +37,79 @@ def _flags(options: dict) -> str:
     return " ".join(f"--{k}={str(v).lower() if isinstance(v, bool) else v}" for k, v in options.items())
 
 
+# XLA reads XLA_FLAGS when its first client starts: jaxlib's CPU client alone (0.2 s) aborts on an
+# unknown flag as JAX's start does (1.2 s, measured); each test worker probes once, the processes
+# it starts inherit the result
+_PROBE = """
+try:
+    from jaxlib.xla_client import make_cpu_client as start
+except ImportError:
+    import jax
+    def start():
+        jax.jit(lambda x: x + 1)(1.0)
+start()
+"""
+
+
 def _xla_accepts(flags: str) -> bool:
     env = dict(os.environ, XLA_FLAGS=f"{os.environ.get('XLA_FLAGS', '')} {flags}".strip())
-    probe = [sys.executable, "-c", "import jax; jax.jit(lambda x: x + 1)(1.0)"]
+    probe = [sys.executable, "-c", _PROBE]
     return subprocess.run(probe, env=env, capture_output=True, timeout=300).returncode == 0
 
 
-if "LDAP_JAX_TEST_FLAGS" not in os.environ:
-    _candidates = (_flags({**_OPTIONS, **_NEWER}), _flags(_OPTIONS))
-    os.environ["LDAP_JAX_TEST_FLAGS"] = next((f for f in _candidates if _xla_accepts(f)), "")
-if os.environ["LDAP_JAX_TEST_FLAGS"] not in os.environ.get("XLA_FLAGS", ""):
-    _merged = f"{os.environ.get('XLA_FLAGS', '')} {os.environ['LDAP_JAX_TEST_FLAGS']}"
-    os.environ["XLA_FLAGS"] = _merged.strip()
+def _controller(config) -> bool:
+    """True in pytest-xdist's controller, which runs no test: it imports neither JAX nor the
+    library (1.8 s before the workers could start); each worker sets itself up."""
+    return not hasattr(config, "workerinput") and config.pluginmanager.has_plugin("dsession")
 
-jax.config.update("jax_enable_x64", True)
-jax.config.update("jax_numpy_dtype_promotion", "strict")
-jax.config.update("jax_numpy_rank_promotion", "raise")
-# Compiled programs are shared between the test workers and kept for the next run (tests compile
-# the same rollouts in several files); the cache is keyed by program, JAX version and device.
-# Programs that compile in under a second are not stored: storing all (LDAP_JAX_TEST_CACHE_MIN_SECONDS=0)
-# measured 3005 hits of 6595 compilations in a full run, saving 21 s of compilation for 19 s of reading.
-_CACHE_MIN = os.environ.get("LDAP_JAX_TEST_CACHE_MIN_SECONDS", "1.0")
-_CACHE = lj.enable_compilation_cache(
-    os.environ.get("LDAP_JAX_TEST_CACHE") or pathlib.Path(__file__).parent.parent / ".cache" / "xla",
-    min_compile_seconds=float(_CACHE_MIN),
-)
-# ... and with the processes the tests start (notebook kernels, scripts): the README's, notebook 03's
-# and test_control's interior-point solve of parallel_park are one program, compiled once.
-os.environ["JAX_COMPILATION_CACHE_DIR"] = _CACHE
-os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = _CACHE_MIN
-os.environ["JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES"] = "0"
 
-# A test worker's heap grows to millions of objects (JAX's caches of traced and compiled programs),
-# and each of Python's full collections then walks all of them: measured 20-22 full collections of
-# 0.5-0.8 s each per worker on four test files, 33 s per worker in a full run. The objects made by
-# the imports are never garbage (frozen out of the collector), and the young generation is
-# collected every 50000 allocations instead of 700: measured in a full run, 3-5 full collections per
-# worker (0.2-0.3 s) instead of 39-49 (32-34 s).
-gc.freeze()
-gc.set_threshold(50_000, 20, 100)
+@pytest.hookimpl(trylast=True)  # after pytest-xdist's, which registers its controller
+def pytest_configure(config):
+    if _controller(config):
+        return
+    from ldap_jax._compilation_cache import FAST_COMPILE_OPTIONS
+
+    if "LDAP_JAX_TEST_FLAGS" not in os.environ:
+        options = {**FAST_COMPILE_OPTIONS, **_OPTIONS}
+        candidates = (_flags({**options, **_NEWER}), _flags(options))
+        os.environ["LDAP_JAX_TEST_FLAGS"] = next((f for f in candidates if _xla_accepts(f)), "")
+    if os.environ["LDAP_JAX_TEST_FLAGS"] not in os.environ.get("XLA_FLAGS", ""):
+        merged = f"{os.environ.get('XLA_FLAGS', '')} {os.environ['LDAP_JAX_TEST_FLAGS']}"
+        os.environ["XLA_FLAGS"] = merged.strip()
+
+    import jax
+
+    import ldap_jax as lj  # importing does not start JAX's backend
+
+    jax.config.update("jax_enable_x64", True)
+    jax.config.update("jax_numpy_dtype_promotion", "strict")
+    jax.config.update("jax_numpy_rank_promotion", "raise")
+    # Compiled programs are shared between the test workers and kept for the next run (tests
+    # compile the same rollouts in several files); the cache is keyed by program, JAX version and
+    # device. Programs that compile in under a second are not stored: storing all
+    # (LDAP_JAX_TEST_CACHE_MIN_SECONDS=0) measured 3005 hits of 6595 compilations in a full run,
+    # saving 21 s of compilation for 19 s of reading.
+    cache_min = os.environ.get("LDAP_JAX_TEST_CACHE_MIN_SECONDS", "1.0")
+    cache = lj.enable_compilation_cache(
+        os.environ.get("LDAP_JAX_TEST_CACHE") or pathlib.Path(__file__).parent.parent / ".cache" / "xla",
+        min_compile_seconds=float(cache_min),
+    )
+    # ... and with the processes the tests start (notebook kernels, scripts): the README's,
+    # notebook 03's and test_control's interior-point solve of parallel_park are one program,
+    # compiled once.
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = cache
+    os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = cache_min
+    os.environ["JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES"] = "0"
+
+    # A test worker's heap grows to millions of objects (JAX's caches of traced and compiled
+    # programs), and each of Python's full collections then walks all of them: measured 20-22 full
+    # collections of 0.5-0.8 s each per worker on four test files, 33 s per worker in a full run.
+    # The objects made by the imports are never garbage (frozen out of the collector), and the
+    # young generation is collected every 50000 allocations instead of 700: measured in a full
+    # run, 3-5 full collections per worker (0.2-0.3 s) instead of 39-49 (32-34 s).
+    gc.freeze()
+    gc.set_threshold(50_000, 20, 100)
+
 
 #: Tests that read the same per-worker results (tests/helpers.py's caches, a module's cached runs)
 #: run on the same xdist worker (``--dist loadgroup``): module file name -> group.
@@ -134,34 +162,6 @@ def pytest_collection_modifyitems(config, items):
 def pytest_runtest_teardown(item, nextitem):
     # Each compiled program holds hundreds of memory mappings on XLA's CPU backend; a test worker
     # that compiles a few hundred programs would cross vm.max_map_count and crash inside XLA.
+    import ldap_jax as lj  # imported by pytest_configure
+
     lj.trim_compilation_cache(0.4)
-
-
-@pytest.hookimpl(tryfirst=True)
-def pytest_pyfunc_call(pyfuncitem):
-    """An ``isolated`` test runs in a child pytest with the suite's flags (it clears JAX's caches,
-    which in a worker would make every later test there compile again); it passes if the child
-    passes."""
-    if _CHILD or pyfuncitem.get_closest_marker("isolated") is None:
-        return None
-    env = {k: v for k, v in os.environ.items() if not k.startswith("PYTEST_")}
-    env.update(LDAP_JAX_ISOLATED="1")
-    cmd = [
-        sys.executable,
-        "-m",
-        "pytest",
-        "-q",
-        "-p",
-        "no:cacheprovider",
-        "-p",
-        "no:xdist",
-        pyfuncitem.nodeid.split("@")[0],  # without xdist's group suffix
-    ]
-    proc = subprocess.run(
-        cmd, env=env, cwd=pyfuncitem.config.rootpath, capture_output=True, text=True, timeout=1800
-    )
-    if proc.returncode != 0:
-        pytest.fail(
-            f"in an isolated child process:\n{proc.stdout[-6000:]}\n{proc.stderr[-2000:]}", pytrace=False
-        )
-    return True

@@ -12,8 +12,10 @@ import ldap_jax as lj
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc/self/maps")
-@pytest.mark.isolated  # it empties JAX's caches: in a test worker every later test compiled again
 def test_trim_releases_the_mappings_of_compiled_programs():
+    # It empties JAX's caches in its test worker, as the worker's own trims after a test do
+    # (conftest.py: one or two per worker in a full run), and then starts a worker's count of
+    # mappings afresh.
     sb = systems()["snakeboard"]
     q0, qdot0, ctl = jax.tree_util.tree_map(lambda x: x[0], maneuvers(sb, 1, seed=0))
     lj.trim_compilation_cache(1e-9)  # start from empty caches
