@@ -214,14 +214,16 @@ def test_kernel_equals_newton_float32(name, alpha, retraction):
 def test_gradients_match(name):
     """Reverse-mode gradients of a cost on a middle and the final node, in the parameters, the
     initial states and the controls: through the kernel and through Newton (implicit function
-    theorem) they agree; for the snakeboard, every rematerialisation policy gives the same
-    gradient: per step and chunks of 7 steps (which do not divide N: the padded chunk loop) on the
-    kernel path, nested sqrt(N) chunks (18 steps, also padded) on the Newton path."""
+    theorem) they agree; for the car, every rematerialisation policy gives the same gradient: per
+    step and chunks of 7 steps (which do not divide N: the padded chunk loop) on the kernel path,
+    nested sqrt(N) chunks (18 steps, also padded) on the Newton path. (The policies belong to the
+    rollout loop, which is the same for every system; the car's gradient programs compile in
+    about 2.3 s against the snakeboard's 3.6 s.)"""
     system = SYSTEMS[name]
     # one maneuver, without vmap: batching adds nothing to what is compared, only tracing time
     q0, qdot0, ctl = jax.tree_util.tree_map(lambda x: x[0], maneuvers(system, 2, seed=5))
     grad = eqx.filter_jit(jax.grad(_gradient_loss, argnums=(0, 1, 2)))
-    policies = {"auto": (False, True, 7), "newton": (False, "sqrt")} if name == "snakeboard" else {}
+    policies = {"auto": (False, True, 7), "newton": (False, "sqrt")} if name == "car" else {}
     g = {
         (solver, policy): grad(system, q0, qdot0, ctl, lj.RDP(solver=solver), policy)
         for solver in ("auto", "newton")
