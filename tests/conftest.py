@@ -18,7 +18,7 @@ import pytest
 # module compiled 1.3x longer), so the library does not set them. Nearly all of the suite's time is
 # compilation and tracing. Test workers and the processes the tests start (notebooks, scripts)
 # inherit the flags. An XLA that does not know a flag aborts the process, so a child process tries
-# them first (once): all of them, else the older set, else none.
+# them first (once per test worker): all of them, else the older set, else none.
 #
 # At -O0 the same operation can round differently in a vectorised and a scalar loop: `a * b + c`
 # is fused into one rounding (FMA) in one and not the other (258 of 1001 random values differ
