@@ -54,7 +54,7 @@ def use_cpu_cores(n: int | None = None) -> int:
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
         raise ValueError(f"'n' must be a positive integer, got {n!r}")
     if _backend_started():
-        return jax.device_count()
+        return len(jax.devices("cpu"))  # host devices, also where an accelerator is the default
     flags = os.environ.get("XLA_FLAGS", "")
     given = re.search(rf"{_COUNT_FLAG}=(\d+)", flags)
     if given:

@@ -200,6 +200,7 @@ def test_diagnostics_on_values_are_one_program_each(name):
     before: 31 programs and 0.73 s for the snakeboard's energy; now 1 and 0.06 s), also for a
     user's ``lj.System`` (its callables are static), and give the values traced inline into a
     caller's ``jit``."""
+    # a racer of its own, not helpers.RACER: its programs cannot have been compiled by another test
     system = SYSTEMS["snakeboard"] if name == "snakeboard" else lj.roller_racer()
     q = jnp.asarray(rng.normal(size=system.n_config))
     qdot = jnp.asarray(rng.normal(size=system.n_config))
