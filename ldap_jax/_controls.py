@@ -126,8 +126,10 @@ class Sinusoids(AbstractControls):
         """Angle addition: ``sin(w (t + f h) + p) = sin(w t + p) cos(w f h) + cos(w t + p) sin(w f h)``,
         with the ``(cos, sin)(w f h)`` of a step computed once: one ``sincos`` per term and step,
         however many fractions the integrator reads. Written term by term on scalars, so that a
-        vmapped batch keeps each term one contiguous vector (measured 1.4x faster rollouts than
-        the same arithmetic on the ``(channels, terms)`` arrays)."""
+        vmapped batch keeps each term one contiguous vector: the same arithmetic on the
+        ``(channels, terms)`` arrays compiles faster (a 2 x 2 gait: 13-37% fewer XLA kernels in a
+        snakeboard rollout) but runs slower (measured again: 1.25x for RDP, 1.6-1.85x for its
+        compositions, batches of 200 maneuvers and 1000 steps)."""
         n_ch, n_terms = self.amplitude.shape[-2:]
         ds, dc = sincos(self.frequency[None] * (h * fractions)[:, None, None])  # (S, channels, terms)
 
