@@ -248,7 +248,7 @@ def rollout(
             return emit(step(carry, j, True))
         # every step of the segment in one scan body: the step is in the program once, as with
         # save="all" (a last step outside the scan was a second copy that XLA compiled again:
-        # final-node and strided programs compiled 1.2-1.6x as long, their gradients too)
+        # final-node and strided programs compiled 1.2-1.7x as long, their gradients too)
         last = j * stride + stride - 1
         ks = j * stride + jnp.arange(stride, dtype=jnp.int32)
         carry, _ = jax.lax.scan(_policy_body(inner_body, checkpoint), carry, ks)

@@ -309,10 +309,10 @@ def _inner_call_sites(jaxpr, found=None) -> dict:
 
 
 def test_every_save_option_has_the_step_once():
-    """A stride or save="final" puts the step, and the observation of a node, into the program as
-    often as save="all" does (once each in the scan body): the last step of a segment is not a
-    second copy of the step (XLA compiled it twice; final-node programs and their gradients then
-    compiled 1.2-1.6x as long)."""
+    """A stride or save="final" puts the step and the observation of a node into the program as
+    often as save="all" does (the step once; the observation twice, node 0 and the loop): the
+    last step of a segment is not a second copy of the step (XLA compiled it twice; final-node
+    programs and their gradients then compiled 1.2-1.7x as long)."""
     sb = SYSTEMS["snakeboard"]
     q0, qdot0, ctl = index(maneuvers(sb, 1, seed=14), 0)
     kw = dict(t_final=1.0, n_steps=12)
