@@ -54,8 +54,8 @@ def test_reference_is_converged():
 
 
 def test_reference_shares_one_program_across_sample_counts_and_tolerances():
-    """11 and 13 samples (both padded to 16) and another tolerance run the program compiled for the
-    first request; the samples the two requests share agree to round-off (the solver's steps do
+    """11, 13 and 2 samples (all padded to 32) and another tolerance run the program compiled for
+    the first request; the samples the requests share agree to round-off (the solver's steps do
     not depend on where it samples), and the padding never shows in the result."""
     sb = SYSTEMS["snakeboard"]
     q0, qdot0, ctl = index(maneuvers(sb, 1, seed=22), 0)
@@ -65,8 +65,10 @@ def test_reference_shares_one_program_across_sample_counts_and_tolerances():
     with compiled_programs() as names:
         b = lj.reference(sb, q0, qdot0, ctl, more)
         lj.reference(sb, q0, qdot0, ctl, ts, rtol=1e-12, atol=1e-12)
+        ends = lj.reference(sb, q0, qdot0, ctl, ts[jnp.array([0, -1])])
     assert "jit(_reference)" not in names, names
-    assert a.q.shape == (11, 5) and b.q.shape == (13, 5) and b.t.shape == (13,)
+    assert a.q.shape == (11, 5) and b.q.shape == (13, 5) and b.t.shape == (13,) and ends.q.shape == (2, 5)
+    np.testing.assert_allclose(ends.q, a.q[jnp.array([0, -1])], rtol=0, atol=1e-13)
     np.testing.assert_array_equal(b.t, more)
     shared = np.isin(np.asarray(more), np.asarray(ts))
     np.testing.assert_allclose(b.q[shared], a.q, rtol=0, atol=1e-13)
