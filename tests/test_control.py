@@ -44,20 +44,22 @@ def test_discrete_dynamics_reproduce_simulate_and_differentiate(name, make):
     nodes = eqx.filter_jit(lambda d, x, u: jax.vmap(d.node)(x, u))(dyn, xs, us)
     np.testing.assert_allclose(nodes[0], traj.q, atol=1e-12)
     np.testing.assert_allclose(nodes[1], traj.qdot, atol=1e-12)
-    x, u0, u1 = xs[5], us[5], us[6]
+    # host copies: the differences below are NumPy arithmetic (op by op, JAX compiles each)
+    x, u0, u1 = np.asarray(xs)[5], np.asarray(us)[5], np.asarray(us)[6]
     jx, ju = jax.jit(lambda a, b, c: jax.jacfwd(dyn.step, argnums=(0, 2))(a, b, c))(x, u0, u1)
+    jx, ju = np.asarray(jx), np.asarray(ju)
     step = jax.jit(lambda a, b, c: dyn.step(a, b, c))  # one program for the differences (eagerly: op by op)
     eps = 1e-6
     for i in range(x.size):
-        e = jnp.zeros_like(x).at[i].set(eps)
-        np.testing.assert_allclose(
-            jx[:, i], (step(x + e, u0, u1) - step(x - e, u0, u1)) / (2 * eps), rtol=1e-6, atol=1e-8
-        )
+        e = np.zeros_like(x)
+        e[i] = eps
+        fd = (np.asarray(step(x + e, u0, u1)) - np.asarray(step(x - e, u0, u1))) / (2 * eps)
+        np.testing.assert_allclose(jx[:, i], fd, rtol=1e-6, atol=1e-8)
     for i in range(u1.size):
-        e = jnp.zeros_like(u1).at[i].set(eps)
-        np.testing.assert_allclose(
-            ju[:, i], (step(x, u0, u1 + e) - step(x, u0, u1 - e)) / (2 * eps), rtol=1e-6, atol=1e-8
-        )
+        e = np.zeros_like(u1)
+        e[i] = eps
+        fd = (np.asarray(step(x, u0, u1 + e)) - np.asarray(step(x, u0, u1 - e))) / (2 * eps)
+        np.testing.assert_allclose(ju[:, i], fd, rtol=1e-6, atol=1e-8)
 
 
 def test_discrete_dynamics_called_eagerly_compile_once_and_inline_under_jit():
@@ -115,9 +117,10 @@ def test_policy_with_zero_feedback_equals_open_loop():
     closed = lj.simulate(car, q0, qdot0, zero, **kw)
     np.testing.assert_allclose(closed.q, open_loop.q, atol=1e-13)
     np.testing.assert_allclose(closed.qdot, open_loop.qdot, atol=1e-13)
-    gain = jnp.zeros((2, 10)).at[0, 5].set(-0.05)  # damp the wheel rate around zero
-    damped = lj.simulate(car, q0, qdot0, lj.LinearPolicy(ctl, gain), **kw)
-    assert float(jnp.max(jnp.abs(damped.q - open_loop.q))) > 1e-3
+    gain = np.zeros((2, 10))
+    gain[0, 5] = -0.05  # damp the wheel rate around zero
+    damped = lj.simulate(car, q0, qdot0, lj.LinearPolicy(ctl, jnp.asarray(gain, gain.dtype)), **kw)
+    assert float(np.max(np.abs(np.asarray(damped.q) - np.asarray(open_loop.q)))) > 1e-3
 
     def law(t, q, qd):
         return ctl(t)
@@ -225,7 +228,7 @@ def test_solver_costs_read_the_node_only_when_a_term_needs_it():
 
     def compute():
         calls.append(1)
-        return jnp.arange(3.0), -jnp.arange(3.0)
+        return np.arange(3.0), -np.arange(3.0)
 
     node = _LazyNode(compute)
     assert not calls
@@ -237,7 +240,7 @@ def test_solver_costs_read_the_node_only_when_a_term_needs_it():
     # the solver's stage cost of the effort: no velocity recovery in its program
     task = lc.parallel_park(n_steps=10)
     _, _, fns, _, _ = lc._solve._setup(task, task.init()[0])
-    chi = jnp.zeros(jax.eval_shape(fns.first, task.init()[0]).shape)
+    chi = np.zeros(jax.eval_shape(fns.first, task.init()[0]).shape)
     n_effort = len(jax.make_jaxpr(fns.stage_cost)(chi).eqns)
     n_terminal = len(jax.make_jaxpr(fns.terminal)(chi).eqns)
     assert n_effort < 20 < n_terminal, (n_effort, n_terminal)
@@ -330,14 +333,15 @@ def test_ipm_solves_a_stage_form_without_a_perturbation():
     assert fns.perturbation is None
     lo = jnp.array([-jnp.inf, -0.6, -jnp.inf])
     hi = jnp.array([jnp.inf, 0.6, jnp.inf])
-    v0 = jnp.zeros((K, 1))
-    chi0 = jnp.zeros((K, 3))
+    v0 = np.zeros((K, 1))
+    chi0 = np.zeros((K, 3))
     st = jax.jit(lambda c, v: ipm_solve(fns, c, v, lo, hi, IPMOptions(tol=1e-9)))(chi0, v0)
     assert st.result == SOLVER_RESULTS.successful, int(st.iteration)
     defects, cK = _constraints(fns, st.chi, st.v)
-    assert float(jnp.max(jnp.abs(defects))) < 1e-10 and float(jnp.max(jnp.abs(cK))) < 1e-10
+    defects, cK = np.asarray(defects), np.asarray(cK)
+    assert float(np.max(np.abs(defects))) < 1e-10 and float(np.max(np.abs(cK))) < 1e-10
     # the least-effort profile would peak at 0.75 m/s: the bound is active and held
-    assert 0.6 - 1e-6 < float(jnp.max(jnp.abs(st.chi[:, 1]))) < 0.6
+    assert 0.6 - 1e-6 < float(np.max(np.abs(np.asarray(st.chi)[:, 1]))) < 0.6
 
 
 def test_riccati_solves_the_qp_and_refinement_reduces_the_residual():
@@ -355,7 +359,7 @@ def test_riccati_solves_the_qp_and_refinement_reduces_the_residual():
     W, Z, QK, C, w, e, qK, c = _random_qp(0)
     K, n, nm = Z.shape
     m, p = nm - n, C.shape[0]
-    f = riccati_factor(*map(jnp.asarray, (W, Z, QK, C)), jnp.zeros(()))
+    f = riccati_factor(W, Z, QK, C, np.zeros(()))
     sol = riccati_apply(f, w, e, qK, c)
     # dense: unknowns dx_1..dx_K, dv_0..dv_{K-1}; dx_0 = 0
     nx, nv = K * n, K * m
@@ -375,32 +379,32 @@ def test_riccati_solves_the_qp_and_refinement_reduces_the_residual():
     b[nx:] = -c
     kkt = np.block([[H, A.T], [A, np.zeros((nx + p, nx + p))]])
     dense = np.linalg.solve(kkt, np.concatenate([-g, b]))
-    np.testing.assert_allclose(sol.dx[1:].reshape(-1), dense[:nx], rtol=0, atol=1e-9)
-    np.testing.assert_allclose(sol.dv.reshape(-1), dense[nx : nx + nv], rtol=0, atol=1e-9)
-    assert max(float(jnp.max(jnp.abs(r))) for r in kkt_residual(f, w, e, qK, c, sol)) < 1e-10
+    np.testing.assert_allclose(np.asarray(sol.dx)[1:].reshape(-1), dense[:nx], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(sol.dv).reshape(-1), dense[nx : nx + nv], rtol=0, atol=1e-9)
+    assert max(float(np.max(np.abs(np.asarray(r)))) for r in kkt_residual(f, w, e, qK, c, sol)) < 1e-10
 
     # ill-conditioned (1e10 barrier terms): refinement
     def residual(f, qp, k, atol=0.0):
         w, e, qK, c = qp[4:]
         r = kkt_residual(f, w, e, qK, c, riccati_apply(f, w, e, qK, c, k, atol))
-        return max(float(jnp.max(jnp.abs(x))) for x in r)
+        return max(float(np.max(np.abs(np.asarray(x)))) for x in r)
 
     for seed in range(4):
         qp = _random_qp(seed, K=30, stiff=1e10, near_identity=True)
-        f = riccati_factor(*map(jnp.asarray, qp[:4]), jnp.zeros(()))
+        f = riccati_factor(*qp[:4], np.zeros(()))
         res = [residual(f, qp, k) for k in range(3)]
         assert res[0] > 1e-1 and res[1] < res[0] / 10 and res[2] < res[0] / 100, (seed, res)
         assert residual(f, qp, 2, atol=res[1] * 1.01) == res[1]  # stops below atol
     # factors of another matrix (stage Hessians 1/10 of the system's), on which refinement
     # diverges after one step: a correction that increases the residual is not taken
     qp = _random_qp(0)
-    f = riccati_factor(*map(jnp.asarray, qp[:4]), jnp.zeros(()))
-    f = f._replace(W=10 * f.W, QK=10 * f.QK)
+    f = riccati_factor(*qp[:4], np.zeros(()))
+    f = f._replace(W=10 * np.asarray(f.W), QK=10 * np.asarray(f.QK))
     w, e, qK, c = qp[4:]
     s = _apply(f, w, e, qK, c)
     for _ in range(2):  # unguarded
-        s = jax.tree_util.tree_map(jnp.add, s, _apply(f, *kkt_residual(f, w, e, qK, c, s)))
-    unguarded = max(float(jnp.max(jnp.abs(x))) for x in kkt_residual(f, w, e, qK, c, s))
+        s = jax.tree_util.tree_map(np.add, s, _apply(f, *kkt_residual(f, w, e, qK, c, s)))
+    unguarded = max(float(np.max(np.abs(np.asarray(x)))) for x in kkt_residual(f, w, e, qK, c, s))
     res = [residual(f, qp, k) for k in range(3)]
     assert res[1] < res[0] < unguarded and res[2] == res[1], (res, unguarded)
 
@@ -446,23 +450,27 @@ def test_sensitivities_match_finite_differences_of_resolves(small_park):
     # the implicit-function-theorem step
     assert "jit(_finish)" in names and not {"jit(_run)", "jit(_solve)"} & set(names), names
     eps = 1e-4
+    dcost_goal, dparams = np.asarray(dcost[0]), np.asarray(dparams)
     for i in range(3):
-        e = jnp.zeros(3).at[i].set(eps)
+        e = np.zeros(3)
+        e[i] = eps
         (cp, pp), (cm, pm) = optimum(g0 + e, m0), optimum(g0 - e, m0)
-        np.testing.assert_allclose(dcost[0][i], (cp - cm) / (2 * eps), rtol=1e-4)
-        np.testing.assert_allclose(dparams[:, i], (pp - pm) / (2 * eps), rtol=1e-4, atol=1e-6)
+        np.testing.assert_allclose(dcost_goal[i], (float(cp) - float(cm)) / (2 * eps), rtol=1e-4)
+        fd = (np.asarray(pp) - np.asarray(pm)) / (2 * eps)
+        np.testing.assert_allclose(dparams[:, i], fd, rtol=1e-4, atol=1e-6)
     cp, cm = optimum(g0, m0 + eps)[0], optimum(g0, m0 - eps)[0]
-    np.testing.assert_allclose(dcost[1], (cp - cm) / (2 * eps), rtol=1e-4)
+    np.testing.assert_allclose(dcost[1], (float(cp) - float(cm)) / (2 * eps), rtol=1e-4)
 
 
 def test_solve_vmaps_over_goals(small_park):
     task, p0 = small_park
     goals = task.goal[None] + jnp.array([[0.0, 0.0, 0.0], [0.05, 0.01, 0.0], [-0.05, 0.0, 0.02]])
     batch = jax.vmap(lambda g: lc.solve(task.with_options(goal=g), p0))(goals)
+    params, converged, iterations = (np.asarray(x) for x in (batch.params, batch.converged, batch.iterations))
     for i in range(3):
         one = lc.solve(task.with_options(goal=goals[i]), p0)
-        np.testing.assert_allclose(batch.params[i], one.params, rtol=1e-7, atol=1e-9)
-        assert bool(batch.converged[i]) and int(batch.iterations[i]) == int(one.iterations)
+        np.testing.assert_allclose(params[i], one.params, rtol=1e-7, atol=1e-9)
+        assert bool(converged[i]) and int(iterations[i]) == int(one.iterations)
 
 
 def test_curvature_tol_is_traced_and_reaches_the_same_optimum(small_park):
@@ -540,19 +548,24 @@ def test_penalty_gradient_matches_finite_differences(name):
     task = SMALL[name]()
     p = task.init()
     leaves, treedef = jax.tree_util.tree_flatten(p)
-    keys = jax.random.split(jax.random.PRNGKey(1), len(leaves))
+    # the point, the direction and the differences on the host (op by op, JAX compiles each)
+    keys = np.asarray(jax.random.split(jax.random.PRNGKey(1), len(leaves)))
     p = jax.tree_util.tree_unflatten(
-        treedef, [x + 0.05 * jax.random.normal(k, x.shape) for x, k in zip(leaves, keys)]
+        treedef,
+        [np.asarray(x) + 0.05 * np.asarray(jax.random.normal(k, x.shape)) for x, k in zip(leaves, keys)],
     )
     v = jax.tree_util.tree_unflatten(
-        treedef, [jax.random.normal(k, x.shape) for x, k in zip(leaves, keys[::-1])]
+        treedef, [np.asarray(jax.random.normal(k, x.shape)) for x, k in zip(leaves, keys[::-1])]
     )
     value = eqx.filter_jit(task.value)
     grad = eqx.filter_jit(lambda x: jax.grad(task.value)(x))(p)
     eps = 1e-5
     shift = lambda s: jax.tree_util.tree_map(lambda x, d: x + s * d, p, v)  # noqa: E731
-    fd = (value(shift(eps)) - value(shift(-eps))) / (2 * eps)
-    ad = sum(jnp.vdot(a, b) for a, b in zip(jax.tree_util.tree_leaves(grad), jax.tree_util.tree_leaves(v)))
+    fd = (float(value(shift(eps))) - float(value(shift(-eps)))) / (2 * eps)
+    ad = sum(
+        np.vdot(np.asarray(a), b)
+        for a, b in zip(jax.tree_util.tree_leaves(grad), jax.tree_util.tree_leaves(v))
+    )
     assert abs(float(ad - fd)) <= 1e-6 * (abs(float(fd)) + 1e-3 * float(value(p))), (float(ad), float(fd))
 
 
@@ -576,7 +589,9 @@ def test_optimize_compiles_once_keeps_terms_and_stops(park40):
     assert _optimize._run_chunk._cached._cache_size() - before == 1
     assert float(res.loss) <= float(res.losses[0]) / 100
     assert set(res.aux) == {"effort", "pose", "rest", "bounds"} and res.aux["pose"].shape == (40,)
-    np.testing.assert_allclose(sum(v[3] for v in res.aux.values()), res.losses[3], rtol=1e-12)
+    np.testing.assert_allclose(
+        sum(np.asarray(v)[3] for v in res.aux.values()), np.asarray(res.losses)[3], rtol=1e-12
+    )
     stopped = lc.optimize(task.loss, p0, n_iterations=400, chunk=10, tol=1e-3)
     assert bool(stopped.converged) and stopped.iterations < 400
     # the tolerance is traced: another tol ran the same compiled chunk
@@ -603,7 +618,8 @@ def test_optimize_warns_when_the_loss_never_falls_below_the_guess(park40):
     start that makes progress raises nothing (the suite turns warnings into errors)."""
     task = park40
     p0 = jnp.zeros((task.n_steps + 1, 2))
-    assert float(jnp.max(jnp.abs(jax.jit(jax.grad(task.value))(p0)))) == 0.0  # compiled, not op by op
+    grad0 = np.asarray(jax.jit(jax.grad(task.value))(p0))  # compiled, not op by op
+    assert float(np.max(np.abs(grad0))) == 0.0
     with pytest.warns(UserWarning, match="never fell below its value at the initial guess"):
         res = lc.optimize(task.loss, p0, n_iterations=10, chunk=10)
     np.testing.assert_array_equal(res.params, p0)
@@ -623,11 +639,11 @@ def test_multistart_vmap_equals_loop(park40):
     batch = lc.multistart(task.loss, p0, n_iterations=n)
     for i in range(3):
         one = lc.optimize(task.loss, p0[i], n_iterations=n, chunk=10)
-        np.testing.assert_allclose(batch.losses[i], one.losses, rtol=1e-9)
-        np.testing.assert_allclose(batch.params[i], one.params, rtol=1e-8, atol=1e-10)
+        np.testing.assert_allclose(np.asarray(batch.losses)[i], one.losses, rtol=1e-9)
+        np.testing.assert_allclose(np.asarray(batch.params)[i], one.params, rtol=1e-8, atol=1e-10)
         for name in one.aux:
-            np.testing.assert_allclose(batch.aux[name][i], one.aux[name], rtol=1e-9, atol=1e-12)
-    assert float(lc.best_of(batch).loss) == float(jnp.min(batch.loss))
+            np.testing.assert_allclose(np.asarray(batch.aux[name])[i], one.aux[name], rtol=1e-9, atol=1e-12)
+    assert float(lc.best_of(batch).loss) == float(np.min(np.asarray(batch.loss)))
 
 
 def test_checkpoint_same_gradient_less_memory():
@@ -649,13 +665,15 @@ def test_pose_error_on_se2():
     q = jnp.array([1.0, 0.5, -2.5, 0.0, 0.0])
     expected = lj.lie.log(lj.lie.compose(lj.lie.inverse(goal), q[:3]))
     np.testing.assert_allclose(lc.pose_error(q, goal), expected, atol=1e-13)
+    turned = np.array(q)  # a host copy
+    turned[2] += 2 * np.pi
     np.testing.assert_allclose(
-        lc.pose_error(q.at[2].add(2 * jnp.pi), goal), lc.pose_error(q, goal), atol=1e-12
+        lc.pose_error(jnp.asarray(turned, turned.dtype), goal), lc.pose_error(q, goal), atol=1e-12
     )
     term = lc.TerminalPose(goal, 1.0, 1.0)
     node = lc.Node(jnp.array([0.3, -0.2, 0.7, 0.0, 0.0]), jnp.zeros(5))
     grad = jax.grad(lambda x: term.terminal(lj.Car(), node._replace(q=x), jnp.zeros(5)))(node.q)
-    assert jnp.all(jnp.isfinite(grad))
+    assert np.all(np.isfinite(np.asarray(grad)))
     np.testing.assert_allclose(grad, 0.0, atol=1e-14)
 
 
@@ -674,7 +692,7 @@ def test_penalty_form_on_values_is_one_program():
     with compiled_programs() as names:
         terms = task.terms(traj, p)
     assert names == ["jit(terms)"], names
-    assert float(sum(terms.values())) == pytest.approx(float(value), rel=1e-13)
+    assert sum(float(v) for v in terms.values()) == pytest.approx(float(value), rel=1e-13)
 
 
 def test_terms_compose_and_replay_reuses_them(small_park):
@@ -696,7 +714,7 @@ def test_bound_penalty():
     assert float(lc.bound_penalty(jnp.array([0.5, 100.0]), lo, hi)) == 0.0
     assert float(lc.bound_penalty(jnp.array([1.5, 0.0]), lo, hi)) == pytest.approx(0.25)
     g = jax.grad(lc.bound_penalty)(jnp.array([0.5, 1e300]), lo, hi)
-    assert jnp.all(jnp.isfinite(g))
+    assert np.all(np.isfinite(np.asarray(g)))
 
 
 def test_bad_arguments():

@@ -114,8 +114,8 @@ def test_general_step_on_user_description_equals_closed_form(name, retraction):
     general = simulate_over_alphas(USER[name], batch, alphas, 20.0, 1000, retraction=retraction)
     assert RDP().uses_kernel(model) and not RDP().uses_kernel(USER[name])
     for alpha, c, g in zip(alphas, closed, general):
-        assert not bool(jnp.any(c.failed)) and not bool(jnp.any(g.failed)), alpha
-        assert bool(jnp.all(g.converged))
+        assert not bool(np.any(np.asarray(c.failed))) and not bool(np.any(np.asarray(g.failed))), alpha
+        assert bool(np.all(np.asarray(g.converged)))
         np.testing.assert_allclose(g.q, c.q, rtol=0, atol=1e-10, err_msg=str(alpha))
         np.testing.assert_allclose(g.qdot, c.qdot, rtol=0, atol=1e-10, err_msg=str(alpha))
 
@@ -136,10 +136,11 @@ def test_sign_of_the_connection_term():
     car = USER["car"]
     batch = maneuvers(SYSTEMS["car"], 1, seed=3)
     ref = lj.reference(car, *index(batch, 0), jnp.array([0.0, 4.0]))
+    ref_q = np.asarray(ref.q)
     errs = {}
     for label, integ in (("(23)", RDP()), ("(25) printed", PrintedSign(solver="newton"))):
         runs = simulate_ns(car, integ, batch, 4.0, (100, 200))
-        errs[label] = [float(np.linalg.norm(runs[n].q[0, -1, :3] - ref.q[-1, :3])) for n in (100, 200)]
+        errs[label] = [float(np.linalg.norm(runs[n].q[0, -1, :3] - ref_q[-1, :3])) for n in (100, 200)]
     print(errs)
     assert fitted_order([1, 0.5], errs["(23)"]) > 1.9
     assert min(errs["(25) printed"]) > 100 * errs["(23)"][-1]
@@ -215,23 +216,22 @@ def test_sleigh_energy_and_momentum_equation():
     """The unforced sleigh conserves energy; RDP keeps it over 10^4 steps and satisfies its
     discrete momentum equations (21) to round-off."""
     traj = sleigh_newton_run("exp")
-    assert not bool(jnp.any(traj.failed))
+    assert not bool(np.any(np.asarray(traj.failed)))
     e = np.asarray(traj.energy)
     assert np.abs(e - e[:, :1]).max() < 1e-6 * e[:, 0].min()
-    assert float(jnp.max(traj.step_residual)) < 1e-12
+    assert float(np.max(np.asarray(traj.step_residual))) < 1e-12
     # the continuous momentum is not conserved: the sleigh's momentum changes
-    assert float(jnp.min(jnp.ptp(traj.momentum[..., 0], axis=1))) > 1e-2
+    assert float(np.min(np.ptp(np.asarray(traj.momentum)[..., 0], axis=1))) > 1e-2
 
 
 def test_roller_racer_momentum_and_energy():
     racer, q0, qdot0, ctl = _racer_case(1)
     traj = lj.simulate(racer, q0, qdot0, ctl, t_final=20.0, n_steps=2000)
     assert not bool(traj.failed)
-    assert float(jnp.max(traj.step_residual)) < 1e-11
-    assert float(jnp.max(jnp.abs(traj.energy_balance))) < 1e-2 * float(jnp.max(jnp.abs(traj.work)) + 1e-3)
-    assert (
-        abs(float(traj.q[-1, 0] - traj.q[0, 0])) + abs(float(traj.q[-1, 1] - traj.q[0, 1])) > 0.1
-    )  # it moves
+    balance, work, q = (np.asarray(x) for x in (traj.energy_balance, traj.work, traj.q))  # host copies
+    assert float(np.max(np.asarray(traj.step_residual))) < 1e-11
+    assert float(np.max(np.abs(balance))) < 1e-2 * float(np.max(np.abs(work)) + 1e-3)
+    assert abs(float(q[-1, 0] - q[0, 0])) + abs(float(q[-1, 1] - q[0, 1])) > 0.1  # it moves
 
 
 def test_gradient_through_general_implicit_step():
@@ -247,8 +247,11 @@ def test_gradient_through_general_implicit_step():
     grad = np.asarray(value_and_grad(amp)[1]).ravel()
     eps = 1e-6
     fd = []
+    amp = np.asarray(amp)  # the differences' points on the host (op by op, JAX compiles each operation)
     for i in range(amp.size):
-        e = jnp.zeros(amp.size).at[i].set(eps).reshape(amp.shape)
+        e = np.zeros(amp.size)
+        e[i] = eps
+        e = e.reshape(amp.shape)
         fd.append((float(value_and_grad(amp + e)[0]) - float(value_and_grad(amp - e)[0])) / (2 * eps))
     np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-5 * np.abs(fd).max())
 
@@ -260,7 +263,7 @@ def test_vmap_over_64_maneuvers_equals_loop_for_user_system():
     q0 = jnp.zeros(4)
     qdot0 = jnp.zeros(4)
     run = jax.jit(lambda c: lj.simulate(RACER, q0, qdot0, c, t_final=2.0, n_steps=50).q)
-    batched = jax.vmap(run)(ctl)
+    batched = np.asarray(jax.vmap(run)(ctl))
     for i in range(0, 64, 7):
         np.testing.assert_allclose(batched[i], run(index(ctl, i)), rtol=1e-12, atol=1e-13)
 

@@ -25,11 +25,12 @@ def test_vmap_equals_loop(name):
     system = SYSTEMS[name]
     man = maneuvers(system, 16, seed=2)
     batched = simulate_batch(system, lj.RDP(), man, 3.0, 60)
+    q, qdot, energy = (np.asarray(x) for x in (batched.q, batched.qdot, batched.energy))  # host copies
     for i in range(16):
         single = _run(system, *index(man, i))
-        np.testing.assert_allclose(batched.q[i], single.q, rtol=1e-13, atol=1e-13)
-        np.testing.assert_allclose(batched.qdot[i], single.qdot, rtol=1e-13, atol=1e-13)
-        np.testing.assert_allclose(batched.energy[i], single.energy, rtol=1e-13, atol=1e-13)
+        np.testing.assert_allclose(q[i], single.q, rtol=1e-13, atol=1e-13)
+        np.testing.assert_allclose(qdot[i], single.qdot, rtol=1e-13, atol=1e-13)
+        np.testing.assert_allclose(energy[i], single.energy, rtol=1e-13, atol=1e-13)
 
 
 def test_vmap_over_model_parameters():
@@ -39,7 +40,7 @@ def test_vmap_over_model_parameters():
     def run(m):
         return lj.simulate(lj.Snakeboard(m=m), q0, qdot0, ctl, t_final=2.0, n_steps=50).q[-1]
 
-    batched = jax.vmap(run)(ms)
+    batched = np.asarray(jax.vmap(run)(ms))
     for i, m in enumerate(ms):
         np.testing.assert_allclose(batched[i], run(m), rtol=1e-13, atol=1e-14)
 
@@ -75,7 +76,8 @@ def test_step_is_traced_once_across_programs():
     q0, qdot0, ctl = index(maneuvers(sb, 2, seed=3), 0)
 
     def final(n, **kw):
-        return lj.simulate(sb, q0, qdot0, ctl, t_final=2.0, n_steps=n, integrator=integrator, **kw).q[-1]
+        q = lj.simulate(sb, q0, qdot0, ctl, t_final=2.0, n_steps=n, integrator=integrator, **kw).q
+        return np.asarray(q)[-1]
 
     q20, q40, q40_final = final(20), final(40), final(40, save="final")
     assert _StepCountingRK4.traces == 1
@@ -84,9 +86,9 @@ def test_step_is_traced_once_across_programs():
     q20s = jax.vmap(
         lambda a, b, c: lj.simulate(sb, a, b, c, t_final=2.0, n_steps=20, integrator=integrator).q[-1]
     )(*batch)
-    np.testing.assert_allclose(q20s[0], q20, rtol=1e-13, atol=1e-13)
+    np.testing.assert_allclose(np.asarray(q20s)[0], q20, rtol=1e-13, atol=1e-13)
     ref = final(320)
-    err20, err40 = (float(jnp.linalg.norm(q - ref)) for q in (q20, q40))
+    err20, err40 = (float(np.linalg.norm(q - ref)) for q in (q20, q40))
     assert 0 < 8 * err40 < err20, (err20, err40)  # each program integrates with its own step (RK4)
     jax.grad(
         lambda a: lj.simulate(
@@ -137,8 +139,8 @@ def _fd_check(loss, x, eps=1e-6, rtol=1e-5):
         e = np.zeros_like(flat)
         e[i] = eps
         fd[i] = (
-            float(value_and_grad(jnp.asarray((flat + e).reshape(x.shape)))[0])
-            - float(value_and_grad(jnp.asarray((flat - e).reshape(x.shape)))[0])
+            float(value_and_grad(jnp.asarray((flat + e).reshape(x.shape), flat.dtype))[0])
+            - float(value_and_grad(jnp.asarray((flat - e).reshape(x.shape), flat.dtype))[0])
         ) / (2 * eps)
     np.testing.assert_allclose(grad.ravel(), fd, rtol=rtol, atol=rtol * np.abs(fd).max())
     return grad
@@ -178,7 +180,7 @@ def test_gradient_wrt_initial_state_and_parameters(name):
         ).q
         return jnp.sum(q[-1] ** 2)
 
-    grad = _fd_check(loss, jnp.array([q0[0], system.m]))
+    grad = _fd_check(loss, np.array([np.asarray(q0)[0], np.asarray(system.m)]))
     assert abs(grad[1]) > 1e-8
 
 
@@ -235,8 +237,9 @@ def test_sampled_controls_reproduce_rdp_on_the_nodes():
         a = lj.simulate(system, q0, qdot0, ctl, t_final=t_final, n_steps=n)
         b = lj.simulate(system, q0, qdot0, sampled, t_final=t_final, n_steps=n)
         np.testing.assert_allclose(a.q, b.q, rtol=1e-13, atol=1e-13)
+        t7, t8 = np.asarray(ts)[7], np.asarray(ts)[8]
         np.testing.assert_allclose(
-            sampled(ts[7] + 0.3 * (ts[8] - ts[7])), 0.7 * ctl(ts[7]) + 0.3 * ctl(ts[8]), rtol=1e-12
+            sampled(t7 + 0.3 * (t8 - t7)), 0.7 * np.asarray(ctl(t7)) + 0.3 * np.asarray(ctl(t8)), rtol=1e-12
         )
 
 
@@ -254,8 +257,9 @@ def test_sinusoid_sampler_equals_the_controls_at_the_fractions(dtype):
         return ctl.sampler(h, fractions)(t), jax.vmap(ctl)(t + h * fractions)
 
     for n_ch, n_terms in ((3, 4), (2, 1), (0, 2)):
-        a, w, p = (jnp.asarray(rng.uniform(-2, 2, (n_ch, n_terms)), dtype) for _ in range(3))
-        ctl = lj.Sinusoids(amplitude=a, frequency=3 * w, phase=p)
+        a, w, p = (rng.uniform(-2, 2, (n_ch, n_terms)).astype(dtype) for _ in range(3))
+        a, w3, p = (jnp.asarray(x, dtype) for x in (a, 3 * w, p))  # 3 * w on the host, in dtype
+        ctl = lj.Sinusoids(amplitude=a, frequency=w3, phase=p)
         for t, h in ((0.0, 0.1), (7.3, 0.013), (95.0, 0.5)):
             got, want = both(ctl, jnp.asarray(t, dtype), jnp.asarray(h, dtype))
             assert got.shape == want.shape == (4, n_ch) and got.dtype == dtype
@@ -273,14 +277,15 @@ def test_save_options_select_the_same_nodes():
     full = lj.simulate(car, q0, qdot0, ctl, **kw)
     assert full.q.shape == (61, 5) and full.t.shape == (61,)
     final = lj.simulate(car, q0, qdot0, ctl, save="final", **kw)
-    np.testing.assert_array_equal(final.q, full.q[-1:])
-    np.testing.assert_array_equal(final.work, full.work[-1:])
+    full_t, full_q, full_energy = np.asarray(full.t), np.asarray(full.q), np.asarray(full.energy)
+    np.testing.assert_array_equal(final.q, full_q[-1:])
+    np.testing.assert_array_equal(final.work, np.asarray(full.work)[-1:])
     strided = lj.simulate(car, q0, qdot0, ctl, save=20, **kw)
-    np.testing.assert_array_equal(strided.t, full.t[::20])
-    np.testing.assert_array_equal(strided.q, full.q[::20])
-    np.testing.assert_array_equal(strided.energy, full.energy[::20])
+    np.testing.assert_array_equal(strided.t, full_t[::20])
+    np.testing.assert_array_equal(strided.q, full_q[::20])
+    np.testing.assert_array_equal(strided.energy, full_energy[::20])
     picked = lj.simulate(car, q0, qdot0, ctl, save=[0, 7, 60], **kw)
-    np.testing.assert_array_equal(picked.q, full.q[np.array([0, 7, 60])])
+    np.testing.assert_array_equal(picked.q, full_q[np.array([0, 7, 60])])
     lean = lj.simulate(car, q0, qdot0, ctl, save=20, diagnostics=False, **kw)
     np.testing.assert_array_equal(lean.q, strided.q)
     assert lean.energy is None and lean.work is None and lean.step_residual is None
@@ -345,11 +350,10 @@ def test_snakeboard_singularity_is_reported():
         k = int(traj.failure_index)
         assert 0 < k < 1000
         # nodes up to the failed step's start are finite, every later node is NaN
-        assert np.all(np.isfinite(np.asarray(traj.q[: k + 1]))) and np.all(
-            np.isnan(np.asarray(traj.q[k + 1 :]))
-        )
-        assert np.all(np.isnan(np.asarray(traj.energy[k + 1 :])))
-        assert abs(float(traj.q[k, 4])) > 1.4
+        q, energy = np.asarray(traj.q), np.asarray(traj.energy)
+        assert np.all(np.isfinite(q[: k + 1])) and np.all(np.isnan(q[k + 1 :]))
+        assert np.all(np.isnan(energy[k + 1 :]))
+        assert abs(float(q[k, 4])) > 1.4
         with pytest.raises(Exception, match="singular configuration"):
             lj.simulate(
                 sb, q0, jnp.zeros(5), SINGULAR, t_final=10.0, n_steps=1000, integrator=integrator, throw=True
@@ -367,14 +371,15 @@ def test_failure_does_not_poison_gradients_of_other_batch_members():
         traj = lj.simulate(sb, q0, jnp.zeros(5), lj.Sinusoids(a, f, p), t_final=10.0, n_steps=500)
         return traj.q[-1, 0], traj.failed
 
-    x, failed = jax.jit(jax.vmap(final_x))(amp, freq, phase)
+    x, failed = (np.asarray(y) for y in jax.jit(jax.vmap(final_x))(amp, freq, phase))
     assert not bool(failed[0]) and bool(failed[1]) and np.isfinite(float(x[0])) and np.isnan(float(x[1]))
     g = jax.jit(jax.grad(lambda a: jax.vmap(final_x)(a, freq, phase)[0][0]))(amp)
     # the good member's gradient is finite (here exactly 0: without steering the board cannot move,
     # whatever the rotor does); the failed member's parameters get NaN (a gradient through a failed
     # run is never a silent zero), even where the loss ignores them
-    assert np.all(np.isfinite(np.asarray(g[0])))
-    assert np.all(np.isnan(np.asarray(g[1])))
+    g = np.asarray(g)
+    assert np.all(np.isfinite(g[0]))
+    assert np.all(np.isnan(g[1]))
 
 
 def test_documented_sequence_inputs():
@@ -384,7 +389,14 @@ def test_documented_sequence_inputs():
     car = SYSTEMS["car"]
     q0 = jnp.array([0.0, 0.0, 0.3, 0.0, 0.1])
     qdot0 = car.qdot_from_velocities(q0, jnp.array([2.0]), jnp.zeros(2))
-    a = lj.simulate(car, [float(x) for x in q0], [float(x) for x in qdot0], None, t_final=1.0, n_steps=10)
+    a = lj.simulate(
+        car,
+        [float(x) for x in np.asarray(q0)],
+        [float(x) for x in np.asarray(qdot0)],
+        None,
+        t_final=1.0,
+        n_steps=10,
+    )
     b = lj.simulate(car, q0, qdot0, None, t_final=1.0, n_steps=10)
     np.testing.assert_array_equal(a.q, b.q)
     np.testing.assert_array_equal(
@@ -486,13 +498,13 @@ class TestBadInput:
         traj = jax.jit(lambda qd: self.run(qdot0=qd))(bad)
         assert traj.result == lj.RESULTS.invalid_input and int(traj.failure_index) == 0
         assert "qdot0" in lj.RESULTS[traj.result]
-        assert bool(jnp.all(jnp.isnan(traj.q)))
+        assert bool(np.all(np.isnan(np.asarray(traj.q))))
         with pytest.raises(Exception, match="qdot0"):
             jax.jit(lambda qd: self.run(qdot0=qd, throw=True).q)(bad)
         # a vmapped batch fails only its bad member
-        ok = jax.vmap(lambda qd: self.run(qdot0=qd))(jnp.stack([jnp.zeros(5), bad]))
+        ok = jax.vmap(lambda qd: self.run(qdot0=qd))(np.stack([np.zeros(5), np.asarray(bad)]))
         np.testing.assert_array_equal(code(ok.result), [0, lj.RESULTS.invalid_input._value])
-        assert bool(jnp.all(jnp.isfinite(ok.q[0])))
+        assert bool(np.all(np.isfinite(np.asarray(ok.q)[0])))
 
 
 def test_float32_without_x64_is_warned_by_name():

@@ -27,7 +27,7 @@ def _workless_maneuver(name):
         )
         q0 = jnp.array([0.0, 0.0, 0.1, 0.0, 0.0])
         qdot0 = car.qdot_from_velocities(q0, jnp.array([3.0]), jnp.zeros(2))
-        return car, q0, qdot0, ctl, 3000.0, lambda traj: traj.energy
+        return car, q0, qdot0, ctl, 3000.0, lambda traj: np.asarray(traj.energy)
     sb = SYSTEMS["snakeboard"]
     b, w, p = 0.3, 1.0, 0.4
     ctl = lj.Sinusoids(
@@ -37,7 +37,11 @@ def _workless_maneuver(name):
     )
     q0 = jnp.array([0.0, 0.0, 0.3, 0.0, b * np.sin(p)])
     qdot0 = sb.qdot_from_velocities(q0, jnp.array([1.0, b * w * np.cos(p), 0.4]), jnp.zeros(2))
-    return sb, q0, qdot0, ctl, 500.0, lambda traj: traj.energy - sb.J * traj.qdot[:, 4] ** 2
+
+    def conserved(traj):  # on the host (op by op, JAX compiles each operation)
+        return np.asarray(traj.energy) - np.asarray(sb.J) * np.asarray(traj.qdot)[:, 4] ** 2
+
+    return sb, q0, qdot0, ctl, 500.0, conserved
 
 
 @pytest.mark.parametrize("name", list(SYSTEMS))
@@ -52,7 +56,7 @@ def test_rdp_energy_bounded_rk4_drifts(name):
     ):
         traj = lj.simulate(system, q0, qdot0, ctl, t_final=t_final, n_steps=10_000, integrator=integrator)
         assert not bool(traj.failed)
-        err = np.abs(np.asarray(conserved(traj) - conserved(traj)[0]))
+        err = np.abs(conserved(traj) - conserved(traj)[0])
         n = err.size
         growth[label] = err[n // 2 :].max() / err[: n // 2].max()
         print(
@@ -95,15 +99,16 @@ def test_snakeboard_discrete_momentum_equation_holds_to_roundoff():
         n, t_final = 2000, 20.0
         h = t_final / n
         traj = lj.simulate(sb, *man, t_final=t_final, n_steps=n, integrator=lj.RDP(alpha=alpha))
-        _, mu, jump = discrete_momenta(sb, traj.q, jnp.full(n, h), alpha)
-        residual = jnp.sum(jump * jax.vmap(sb.e1)(traj.q[1:-1, 4]), axis=1)
-        scale = float(jnp.max(jnp.abs(mu)))
-        print(alpha, float(jnp.max(jnp.abs(residual))), scale)
-        assert float(jnp.max(jnp.abs(residual))) < 1e-11 * scale
+        _, mu, jump = (np.asarray(x) for x in discrete_momenta(sb, traj.q, np.full(n, h), alpha))
+        e1 = np.asarray(jax.vmap(sb.e1)(np.asarray(traj.q)[1:-1, 4]))
+        residual = np.sum(jump * e1, axis=1)
+        scale = float(np.max(np.abs(mu)))
+        print(alpha, float(np.max(np.abs(residual))), scale)
+        assert float(np.max(np.abs(residual))) < 1e-11 * scale
         # the per-step residual the integrator reports agrees
-        assert float(jnp.max(traj.step_residual)) < 1e-12 * (1 + scale)
+        assert float(np.max(np.asarray(traj.step_residual))) < 1e-12 * (1 + scale)
         # ... while the continuous momentum mu_1 is not conserved along this forced maneuver
-        assert float(jnp.ptp(traj.momentum[:, 0])) > 1e-3
+        assert float(np.ptp(np.asarray(traj.momentum)[:, 0])) > 1e-3
 
 
 @pytest.mark.parametrize("name", list(SYSTEMS))
@@ -112,6 +117,6 @@ def test_constraints_hold_at_every_node(name):
     man = maneuvers(system, 4, seed=7)
     for integrator in (lj.RDP(), lj.RDP(alpha=0.0, retraction="cayley"), lj.RK4()):
         traj = simulate_batch(system, integrator, man, 10.0, 500)
-        assert not bool(jnp.any(traj.failed))
-        scale = float(jnp.max(jnp.abs(traj.qdot)))
-        assert float(jnp.max(traj.constraint_residual)) < 1e-13 * scale
+        assert not bool(np.any(np.asarray(traj.failed)))
+        scale = float(np.max(np.abs(np.asarray(traj.qdot))))
+        assert float(np.max(np.asarray(traj.constraint_residual))) < 1e-13 * scale
