@@ -87,7 +87,8 @@ def _newton_runs(name: str, retraction: str, dtype: str):
 
 
 def _members(traj, sel):
-    return jax.tree_util.tree_map(lambda x: x[sel] if eqx.is_array(x) and x.ndim else x, traj)
+    """Host copies of the members ``sel`` (NumPy: no program compiled per field and shape)."""
+    return jax.tree_util.tree_map(lambda x: np.asarray(x)[sel] if eqx.is_array(x) and x.ndim else x, traj)
 
 
 def _maxdiff(a, b):
@@ -104,7 +105,7 @@ def _assert_equal_to_roundoff(kern, newt, n_steps, label):
     eps = float(jnp.finfo(jnp.float64).eps)
     # round-off accumulates at most linearly in the number of steps
     tol = 10 * eps * n_steps
-    assert not bool(jnp.any(newt.failed)), (label, code(newt.result))
+    assert not np.any(code(newt.result) != 0), (label, code(newt.result))
     for field in FIELDS:
         a, b = getattr(kern, field), getattr(newt, field)
         assert a.shape == b.shape and a.dtype == b.dtype, (label, field)
@@ -112,9 +113,9 @@ def _assert_equal_to_roundoff(kern, newt, n_steps, label):
     # residual-type outputs are round-off themselves: both tiny relative to the velocities
     vel = _scale(newt.qdot)
     for field in ("constraint_residual", "step_residual"):
-        assert float(jnp.max(getattr(kern, field))) <= 100 * eps * vel, (label, field)
-        assert float(jnp.max(getattr(newt, field))) <= 100 * eps * vel, (label, field)
-    assert bool(jnp.all(newt.converged)) and bool(jnp.all(kern.converged))
+        assert float(np.max(np.asarray(getattr(kern, field)))) <= 100 * eps * vel, (label, field)
+        assert float(np.max(np.asarray(getattr(newt, field)))) <= 100 * eps * vel, (label, field)
+    assert bool(np.all(np.asarray(newt.converged))) and bool(np.all(np.asarray(kern.converged)))
     np.testing.assert_array_equal(code(kern.result), code(newt.result))
     np.testing.assert_array_equal(kern.failure_index, newt.failure_index)
     np.testing.assert_array_equal(kern.t, newt.t)
@@ -230,7 +231,7 @@ def test_gradients_match(name):
         for policy in policies.get(solver, (False,))
     }
     plain = g["newton", False]
-    assert float(max(jnp.max(jnp.abs(x)) for x in jax.tree_util.tree_leaves(plain))) > 1e-6
+    assert max(float(np.max(np.abs(np.asarray(x)))) for x in jax.tree_util.tree_leaves(plain)) > 1e-6
     for (solver, policy), gi in g.items():
         for a, b, c in zip(*(jax.tree_util.tree_leaves(x) for x in (gi, g[solver, False], plain))):
             assert np.all(np.isfinite(np.asarray(a))), (solver, policy)
@@ -249,7 +250,7 @@ def test_sincos_accuracy_and_derivative():
     rng = np.random.default_rng(0)
     for dtype, lim, ulps in ((np.float64, 1e4, 2.0), (np.float32, 1e3, 2.0)):
         x = np.concatenate([rng.uniform(-4, 4, 20000), rng.uniform(-lim, lim, 20000)]).astype(dtype)
-        s, c = jax.jit(sincos)(jnp.asarray(x))
+        s, c = jax.jit(sincos)(x)
         assert s.dtype == dtype
         x64 = x.astype(np.float64)
         # absolute error in units of eps: the reduction's error is absolute, ~ |n| eps_pio2
@@ -406,7 +407,7 @@ def test_closed_form_sleigh_matches_its_description():
         )
 
     for _ in range(5):
-        q, v, xi = (jnp.asarray(rng.normal(size=k)) for k in (3, 2, 3))
+        q, v, xi = (rng.normal(size=k) for k in (3, 2, 3))  # traced by filter_jit as arrays
         mine, lib = views(ClosedFormSleigh(), q, v, xi), views(SLEIGH, q, v, xi)
         np.testing.assert_allclose(mine[0], lib[0], rtol=1e-15)  # the reduced Lagrangian
         np.testing.assert_allclose(mine[1], lib[1], atol=1e-15)  # qdot from the velocities
@@ -430,6 +431,7 @@ def test_closed_form_sleigh_equals_newton_on_the_library_sleigh(retraction):
     newt = sleigh_newton_run(retraction)
     _assert_equal_to_roundoff(kern, newt, n, ("sleigh", retraction))
     # it moved, and its energy (conserved by the flow) stays bounded over the run
-    assert float(jnp.min(jnp.abs(kern.q[:, -1, 2] - kern.q[:, 0, 2]))) > 1.0
+    heading = np.asarray(kern.q)[:, :, 2]
+    assert float(np.min(np.abs(heading[:, -1] - heading[:, 0]))) > 1.0
     e = np.asarray(kern.energy)
     assert np.abs(e - e[:, :1]).max() < 1e-6 * e[:, 0].min()
