@@ -125,26 +125,17 @@ class Sinusoids(AbstractControls):
     def sampler(self, h, fractions):
         """Angle addition: ``sin(w (t + f h) + p) = sin(w t + p) cos(w f h) + cos(w t + p) sin(w f h)``,
         with the ``(cos, sin)(w f h)`` of a step computed once: one ``sincos`` per term and step,
-        however many fractions ``S`` the integrator reads.
-
-        The same arithmetic in one of two forms, the faster for ``S``, measured (snakeboard, a 2 x 2
-        gait, 200 maneuvers, 1000 steps, the forms alternating in one process):
-
-        * ``S <= 2`` (``RDP()``, DLA, GNI): term by term on scalars, so that a vmapped batch keeps
-          each term one contiguous vector. On whole arrays it ran 1.03x as long (1.07x with the
-          diagnostics), though it compiled in 0.73x the time.
-        * ``S > 2`` (RK4, the compositions of ``RDP(order=4, 6)``): on the ``(channels, terms)``
-          arrays, which runs 0.96x (RK4), 0.91x (order 4) and 0.87x (order 6) as long as term by
-          term and compiles in 0.72-0.86x the time (6 of 81 XLA kernels fewer at order 4).
-        """
+        however many fractions the integrator reads. Written term by term on scalars, so that a
+        vmapped batch keeps each term one contiguous vector: the same arithmetic on the
+        ``(channels, terms)`` arrays compiles faster (a 2 x 2 gait: 13-37% fewer XLA kernels in a
+        snakeboard rollout) but runs the default ``RDP()`` slower: 1.03-1.08x (snakeboard, 200
+        maneuvers, 1000 steps, both forms alternating in one process; one maneuver: the same),
+        while its compositions ran 0.86-0.91x and RK4 0.96x. An earlier measurement, in separate
+        processes, had 1.25x for RDP and 1.6-1.85x for the compositions."""
         n_ch, n_terms = self.amplitude.shape[-2:]
         ds, dc = sincos(self.frequency[None] * (h * fractions)[:, None, None])  # (S, channels, terms)
 
-        def on_arrays(t):
-            s, c = materialise(*sincos(self.frequency * t + self.phase))
-            return jnp.sum(self.amplitude[None] * (s[None] * dc + c[None] * ds), axis=-1)
-
-        def term_by_term(t):
+        def sample(t):
             columns = []
             for i in range(n_ch):
                 col = 0.0
@@ -154,7 +145,7 @@ class Sinusoids(AbstractControls):
                 columns.append(col)
             return jnp.stack(columns, axis=-1) if columns else jnp.zeros((fractions.shape[0], 0), t.dtype)
 
-        return term_by_term if fractions.shape[0] <= 2 else on_arrays
+        return sample
 
 
 class Sampled(AbstractControls):
