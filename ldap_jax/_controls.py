@@ -128,10 +128,13 @@ class Sinusoids(AbstractControls):
         however many fractions the integrator reads. Written term by term on scalars, so that a
         vmapped batch keeps each term one contiguous vector: the same arithmetic on the
         ``(channels, terms)`` arrays compiles faster (a 2 x 2 gait: 13-37% fewer XLA kernels in a
-        snakeboard rollout) but runs the default ``RDP()`` slower: 1.03-1.08x (snakeboard, 200
-        maneuvers, 1000 steps, both forms alternating in one process; one maneuver: the same),
-        while its compositions ran 0.86-0.91x and RK4 0.96x. An earlier measurement, in separate
-        processes, had 1.25x for RDP and 1.6-1.85x for the compositions."""
+        rollout, 0.72-0.86x the compile time) but runs slower under XLA's default code generation
+        (a plain ``jax.jit``): 1.22-1.34x for ``RDP()``, 1.8-2.0x for ``RDP(order=4)`` and
+        1.13-1.5x for RK4 (car and snakeboard, 200 maneuvers, 1000 steps, both forms alternating in
+        one process). Compiled with :func:`ldap_jax.compiler_options` (as the library's own entry
+        points are) the array form ran 0.90x for order 4 and RK4 and 1.02-1.04x for ``RDP()``; the
+        term-by-term form under XLA's defaults is the fastest of the four (order 4: 5.1e6 steps/s
+        against 3.2e6 at best on arrays)."""
         n_ch, n_terms = self.amplitude.shape[-2:]
         ds, dc = sincos(self.frequency[None] * (h * fractions)[:, None, None])  # (S, channels, terms)
 
