@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from helpers import (
+    CONV_BATCH,
     CONV_NS,
     CONV_T,
     INTEGRATORS,
@@ -78,8 +79,10 @@ def test_dla_reports_non_convergence():
     # section 4) and Newton cannot converge. The failure must show as RESULTS.not_converged at the
     # failed step, with NaN after it; the same maneuver at h = 0.1875 converges everywhere.
     sb = SYSTEMS["snakeboard"]
-    batch = index(maneuvers(sb, 8, seed=5), slice(3, 4))
-    runs = simulate_ns(sb, lj.DLA(), batch, 30.0, (20, 160))
+    # three maneuvers at three step counts: the batch size and step count of the convergence runs,
+    # whose compiled program this reuses; member 0 is the spinning one
+    batch = index(maneuvers(sb, 8, seed=5), slice(3, 6))
+    runs = simulate_ns(sb, lj.DLA(), batch, 30.0, (20, 40, 160))
     coarse, fine = runs[20], runs[160]
     assert int(coarse.result[0]) == lj.RESULTS.not_converged._value, coarse.result
     k = int(coarse.failure_index[0])
@@ -135,8 +138,11 @@ def test_gni_discrete_structure(sys_name):
     system = SYSTEMS[sys_name]
     q0, qdot0, ctl = index(man, 1)
     zero = eqx.tree_at(lambda c: c.amplitude, ctl, jnp.zeros_like(ctl.amplitude))
-    batch = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), (q0, qdot0, ctl), (q0, qdot0, zero))
-    h_n = 200
+    # forced, unforced, and the forced one again up to the batch size and step count of the
+    # convergence runs (their compiled program is reused)
+    h_n = max(NS)
+    members = [(q0, qdot0, ctl), (q0, qdot0, zero)] + [(q0, qdot0, ctl)] * (CONV_BATCH * len(NS) - 2)
+    batch = jax.tree_util.tree_map(lambda *x: np.stack(x), *members)
     h = CONV_T / h_n
     traj = simulate_batch(system, lj.GNI(), batch, CONV_T, h_n)
     q, residual = np.asarray(traj.q), np.asarray(traj.constraint_residual)  # host copies
