@@ -17,19 +17,26 @@ get_uv = $(PYTHON) -m pip --python $(PY) install -q uv 2>/dev/null \
 	|| { $(PY) -m ensurepip >/dev/null && $(PY) -m pip install -q uv; }
 
 # The package and an extra, installed by uv: measured on a fresh venv, 13-18 s against 26-36 s for
-# pip with its upgrade. Where uv cannot be had, pip installs. Bytecode is compiled at install: with
-# PYTHONDONTWRITEBYTECODE set, as on some machines, every test process would otherwise compile
-# jax's sources again (6.5 s of imports instead of 3.5 s).
-install = { $(get_uv); } && $(VENV)/bin/uv pip install -q --python $(PY) --compile-bytecode -e '.[$(1)]' pip \
+# pip with its upgrade. Where uv cannot be had, pip installs. With PYTHONDONTWRITEBYTECODE set, as on
+# some machines (this one), no process would write bytecode and each would compile its imports
+# again (6.5 s of imports instead of 3.5 s): the demo's install compiles every installed module
+# (uv's --compile-bytecode: 7 s); the tests' compiles only what their processes import, by importing
+# it once with the variable unset, in two processes (4 s).
+install = { $(get_uv); } && $(VENV)/bin/uv pip install -q --python $(PY) $(2) -e '.[$(1)]' pip \
 	|| { $(PY) -m ensurepip >/dev/null; $(PY) -m pip install -q -e '.[$(1)]'; }
+compile_imports = env -u PYTHONDONTWRITEBYTECODE $(PY) -c 'import $(1)'
+# a test worker's imports, and those of the processes the tests start (notebooks, typing, plots)
+WORKER_IMPORTS = ldap_jax.control, ldap_jax.study, ldap_jax.plotting, diffrax, jaxlie, pytest, xdist.plugin
+CHILD_IMPORTS = matplotlib.pyplot, IPython, beartype, jaxtyping, PIL.Image, scipy.linalg
 
 $(VENV)/.installed: pyproject.toml | $(VENV)/bin/python
-	$(call install,bench)
+	$(call install,bench,--compile-bytecode)
 	touch $@
 
 # the tests need no benchmark extras (CasADi): `make demo` installs them when it runs
 $(VENV)/.installed-dev: pyproject.toml | $(VENV)/bin/python
 	$(call install,dev)
+	$(call compile_imports,$(WORKER_IMPORTS)) & $(call compile_imports,$(CHILD_IMPORTS)) && wait $$!
 	touch $@
 
 # The main job at quick settings; figures and tables under results/.
