@@ -121,8 +121,9 @@ def trim_compilation_cache(threshold: float = 0.5) -> bool:
     return True
 
 
-def _tracing() -> bool:
-    """True inside a JAX trace (``jit``, ``vmap``, ``grad``...), where clearing caches is unsafe."""
+def in_trace() -> bool:
+    """True inside a JAX trace (``jit``, ``vmap``, ``grad``...): clearing caches is unsafe there,
+    and a check on known values must run at trace time (``jax.ensure_compile_time_eval``)."""
     try:
         from jax._src import core
 
@@ -147,7 +148,7 @@ def note_program(key: Any) -> bool:
             return False
     except TypeError:  # unhashable static data: do not track
         return False
-    if _tracing():
+    if in_trace():
         return False
     if len(_seen) > 100_000:  # pragma: no cover - bound the bookkeeping
         _seen.clear()
@@ -337,7 +338,7 @@ class _Jit:
         return self._top
 
     def __call__(self, *args, **kwargs):
-        if _tracing():
+        if in_trace():
             traced = _traced((args, kwargs))
             if not _runs_at_top_level((args, kwargs), traced):
                 if self._nested is None:

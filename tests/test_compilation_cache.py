@@ -56,7 +56,7 @@ def test_compiler_options_top_level_and_nested(monkeypatch):
 
     q0 = jnp.zeros(5)
     top = final_x(q0)
-    assert cc._tracing() is False
+    assert cc.in_trace() is False
     assert float(jnp.abs(jax.jit(final_x)(q0) - top)) < 1e-15
     assert float(jnp.max(jnp.abs(jax.vmap(final_x)(jnp.zeros((2, 5))) - top))) < 1e-15
     assert float(jax.grad(final_x)(q0)[0]) == pytest.approx(1.0, abs=1e-12)  # x_N = x_0 + ...
