@@ -196,12 +196,7 @@ def raise_if_concrete(system, integrator, q0, qdot0, controls, t0, t_final, chec
             )
 
     if check_constraints and is_concrete((system, q0, qdot0, controls, t0)):
-        # Called at the top level, one compiled program. Inside an outer trace (values closed over
-        # by a jitted function) it is evaluated at trace time; not at the top level, where that
-        # ran every operation on constants as a program of its own (a first `simulate` of the car
-        # compiled 14 programs, 9 of them single operations, measured).
-        with jax.ensure_compile_time_eval() if in_trace() else contextlib.nullcontext():
-            finite_c0, viol, tol = (float(x) for x in initial_violation(system, q0, qdot0, controls, t0))
+        finite_c0, viol, tol = known_initial_violation(system, q0, qdot0, controls, t0)
         if not finite_c0:  # a policy's output at t0 (open-loop controls' data were checked above)
             raise ValueError(
                 f"'controls' must be finite: their value at t0 = {float(np.asarray(t0)):g} is not "
@@ -213,6 +208,23 @@ def raise_if_concrete(system, integrator, q0, qdot0, controls, t0, t_final, chec
                 "Build it "
                 f"on the constraint distribution, e.g. system.qdot_from_velocities(q0, v0, u_kin)."
             )
+
+
+def known_initial_violation(system, q0, qdot0, controls, t0) -> tuple[bool, float, float]:
+    """:func:`initial_violation` of known (concrete) values, as Python numbers (``controls=None``:
+    zero inputs).
+
+    At the top level one compiled program. Inside an outer trace (values closed over by a jitted
+    function) it is evaluated at trace time; not at the top level, where that ran every operation
+    on constants as a program of its own (a first ``simulate`` of the car compiled 14 programs, 9
+    of them single operations, measured)."""
+    with jax.ensure_compile_time_eval() if in_trace() else contextlib.nullcontext():
+        if controls is None:  # made here: inside a trace, a constant made outside is traced
+            from ._controls import Constant
+
+            controls = Constant(jnp.zeros(system.n_controls))
+        finite, viol, tol = initial_violation(system, q0, qdot0, controls, t0)
+        return bool(finite), float(viol), float(tol)
 
 
 @eqx.filter_jit

@@ -24,11 +24,10 @@ import numpy as np
 from jaxtyping import Array, PRNGKeyArray
 
 from .._compilation_cache import compiled_unless_staged, compiler_options
-from .._controls import Constant
 from .._reference import reference
 from .._rollout import check_checkpoint
 from .._simulate import Trajectory, simulate
-from .._validation import check_array, check_positive_int, check_scalar, initial_violation, is_concrete
+from .._validation import check_array, check_positive_int, check_scalar, is_concrete, known_initial_violation
 from ..integrators import RDP, AbstractIntegrator
 from ..systems import AbstractSystem, Car, Snakeboard
 from ._costs import (
@@ -333,32 +332,30 @@ def make_task(
                     f"'parameterization' spans t_final={float(parameterization.t_final)} but 't_final' is "
                     f"{float(t_final)}"
                 )
-        if is_concrete((system, q0, qdot0)):
-            viol = float(initial_violation(system, q0, qdot0, Constant(jnp.zeros(n)), 0.0)[1])
-            if not viol < 1e-10:
-                raise ValueError(f"'qdot0' violates the constraints of {type(system).__name__} ({viol:.2e})")
-        lo, hi, cm = np.asarray(q_lower), np.asarray(q_upper), np.asarray(c_max)
-        if np.any(np.isnan(lo)) or np.any(np.isnan(hi)) or np.any(lo >= hi):
-            raise ValueError(f"'q_lower' must lie below 'q_upper' (no NaN), got q_lower={lo}, q_upper={hi}")
-        if np.any(~(cm > 0)):
-            raise ValueError(f"'c_max' must be positive (inf: no bound), got {cm}")
-        if is_concrete(q0) and (np.any(np.asarray(q0) < lo) or np.any(np.asarray(q0) > hi)):
-            raise ValueError(f"'q0' {np.asarray(q0)} lies outside the bounds [{lo}, {hi}]")
-        if goal is not None and is_concrete(goal):
-            g = np.asarray(goal)
-            if not np.all(np.isfinite(g)):
-                raise ValueError(f"'goal' must be finite, got {g}")
-            if np.any((g < lo[:3]) | (g > hi[:3])):
-                raise ValueError(f"'goal' {g} lies outside the bounds of (x, y, theta): [{lo[:3]}, {hi[:3]}]")
-        weights = np.asarray(tuple(penalty), float)
-        if not np.all(np.isfinite(weights) & (weights >= 0)):
-            raise ValueError(f"'penalty' weights must be non-negative and finite, got {penalty}")
-        if is_concrete(objective_weight) and not (
-            np.isfinite(float(objective_weight)) and float(objective_weight) >= 0
-        ):
-            raise ValueError(
-                f"'objective_weight' must be non-negative and finite, got {float(objective_weight)}"
-            )
+    if is_concrete((system, q0, qdot0)):
+        viol = known_initial_violation(system, q0, qdot0, None, 0.0)[1]
+        if not viol < 1e-10:
+            raise ValueError(f"'qdot0' violates the constraints of {type(system).__name__} ({viol:.2e})")
+    lo, hi, cm = np.asarray(q_lower), np.asarray(q_upper), np.asarray(c_max)
+    if np.any(np.isnan(lo)) or np.any(np.isnan(hi)) or np.any(lo >= hi):
+        raise ValueError(f"'q_lower' must lie below 'q_upper' (no NaN), got q_lower={lo}, q_upper={hi}")
+    if np.any(~(cm > 0)):
+        raise ValueError(f"'c_max' must be positive (inf: no bound), got {cm}")
+    if is_concrete(q0) and (np.any(np.asarray(q0) < lo) or np.any(np.asarray(q0) > hi)):
+        raise ValueError(f"'q0' {np.asarray(q0)} lies outside the bounds [{lo}, {hi}]")
+    if goal is not None and is_concrete(goal):
+        g = np.asarray(goal)
+        if not np.all(np.isfinite(g)):
+            raise ValueError(f"'goal' must be finite, got {g}")
+        if np.any((g < lo[:3]) | (g > hi[:3])):
+            raise ValueError(f"'goal' {g} lies outside the bounds of (x, y, theta): [{lo[:3]}, {hi[:3]}]")
+    weights = np.asarray(tuple(penalty), float)
+    if not np.all(np.isfinite(weights) & (weights >= 0)):
+        raise ValueError(f"'penalty' weights must be non-negative and finite, got {penalty}")
+    if is_concrete(objective_weight) and not (
+        np.isfinite(float(objective_weight)) and float(objective_weight) >= 0
+    ):
+        raise ValueError(f"'objective_weight' must be non-negative and finite, got {float(objective_weight)}")
     return Task(
         name=name,
         system=system,
