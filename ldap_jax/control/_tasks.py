@@ -15,6 +15,7 @@ an interior-point method); :func:`~ldap_jax.control.optimize` minimises the pena
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import NamedTuple
 
 import equinox as eqx
@@ -40,7 +41,6 @@ from ._costs import (
     TerminalRest,
     evaluate_terms,
     pose_error,
-    wrap_angle,
 )
 from ._parameterizations import AbstractParameterization, SampledControls, SinusoidGait
 
@@ -566,11 +566,12 @@ def replay(task: Task, params, *, rtol: float = 1e-11, atol: float = 1e-11) -> d
     c, e, terms_ref = _replayed(task, params, traj, ref.q, ref.qdot)
     q_ref, q_mod, c = np.asarray(ref.q), np.asarray(traj.q), np.asarray(c)
     model_pos = float(np.linalg.norm(q_ref[-1, :2] - q_mod[-1, :2]))
-    model_head = float(abs(wrap_angle(q_ref[-1, 2] - q_mod[-1, 2])))
+    # host arithmetic in NumPy and math: each eager JAX operation compiled a program of its own
+    model_head = abs(math.remainder(float(q_ref[-1, 2] - q_mod[-1, 2]), 2 * math.pi))
     if task.goal is not None:
         goal = np.asarray(task.goal)
         pos = float(np.linalg.norm(q_ref[-1, :2] - goal[:2]))
-        head = float(abs(wrap_angle(q_ref[-1, 2] - goal[2])))
+        head = abs(math.remainder(float(q_ref[-1, 2] - goal[2]), 2 * math.pi))
         e = np.asarray(e)
     else:
         pos, head = model_pos, model_head
@@ -579,8 +580,8 @@ def replay(task: Task, params, *, rtol: float = 1e-11, atol: float = 1e-11) -> d
     viol_c = np.max(
         np.maximum(c - np.asarray(task.c_upper), 0.0) + np.maximum(np.asarray(task.c_lower) - c, 0.0)
     )
-    th0 = float(task.q0[2])
-    forward = float((q_ref[-1, 0] - task.q0[0]) * np.cos(th0) + (q_ref[-1, 1] - task.q0[1]) * np.sin(th0))
+    x0, y0, th0 = np.asarray(task.q0)[:3]
+    forward = float((q_ref[-1, 0] - x0) * np.cos(th0) + (q_ref[-1, 1] - y0) * np.sin(th0))
     return {
         "q_ref": q_ref,
         "q_model": q_mod,
