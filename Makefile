@@ -18,10 +18,11 @@ get_uv = $(PYTHON) -m pip --python $(PY) install -q uv 2>/dev/null \
 
 # The package and an extra, installed by uv: measured on a fresh venv, 13-18 s against 26-36 s for
 # pip with its upgrade. Where uv cannot be had, pip installs. With PYTHONDONTWRITEBYTECODE set, as on
-# some machines (this one), no process would write bytecode and each would compile its imports
-# again (6.5 s of imports instead of 3.5 s): the demo's install compiles every installed module
-# (uv's --compile-bytecode: 7 s); the tests' compiles only what their processes import, by importing
-# it once with the variable unset, in two processes (4 s).
+# some machines (the one these were measured on), no process would write bytecode and each would
+# compile its imports again (6.5 s of imports instead of 3.5 s): the demo's install compiles every
+# installed module (uv's --compile-bytecode: 7 s); the tests' compiles only what their processes
+# import, by importing it once with the variable unset, in two processes (4 s; a fresh install took
+# 9.0 and 14.7 s against 15.2 and 19.1 s, alternating).
 install = { $(get_uv); } && $(VENV)/bin/uv pip install -q --python $(PY) $(2) -e '.[$(1)]' pip \
 	|| { $(PY) -m ensurepip >/dev/null; $(PY) -m pip install -q -e '.[$(1)]'; }
 compile_imports = env -u PYTHONDONTWRITEBYTECODE $(PY) -c 'import $(1)'

@@ -142,12 +142,14 @@ def compiled_programs(stage: str = "compile"):
 
 def _on_host(fn):
     """``fn`` applied to host copies of concrete leaves (no compiled program per operation and
-    shape, as an eager ``jnp`` operation would be), to the leaves themselves under a trace."""
+    shape, as an eager ``jnp`` operation would be), to the leaves themselves under a trace. The
+    result goes back by ``jax.device_put``: ``jnp.asarray`` of a host array compiles an identity
+    program (``jit(stage)``) per shape and dtype in this JAX."""
 
     def apply(*xs):
         if any(isinstance(x, jax.core.Tracer) for x in xs):
             return fn(*xs)
-        return jnp.asarray(fn(*(np.asarray(x) for x in xs)))
+        return jax.device_put(fn(*(np.asarray(x) for x in xs)))
 
     return apply
 
