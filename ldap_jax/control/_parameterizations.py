@@ -16,7 +16,7 @@ from jaxtyping import Array, Float, PRNGKeyArray
 from .._controls import AbstractControls, Sampled, Sinusoids
 from .._typing import ArrayLike
 
-__all__ = ["AbstractParameterization", "SampledControls", "SinusoidGait"]
+__all__ = ["AbstractParameterization", "SampledControls", "SinusoidGait", "PeriodicControls"]
 
 
 class AbstractParameterization(eqx.Module):
@@ -69,18 +69,73 @@ class SampledControls(AbstractParameterization):
             )
         return params * self.scale[None, :]
 
-    def init(self, key=None, *, amplitude=0.3, n_modes: int = 3):
+    def init(self, key=None, *, amplitude=0.3, n_modes: int = 3, periodic: bool = False):
         """A smooth initial guess: per channel a sum of ``n_modes`` sines ``sin(j pi t / T)`` with
         coefficients ``amplitude * N(0, 1)`` (``key``), or ``amplitude * sin(pi t / T)`` ... for
-        ``key=None`` (a deterministic guess: channel ``c`` gets mode ``c + 1``)."""
+        ``key=None`` (a deterministic guess: channel ``c`` gets mode ``c + 1``). ``periodic``: the
+        modes are ``sin(2 pi j t / T + phase)`` (phases uniform with ``key``, channel ``c``
+        shifted by a quarter period without), periodic over ``[0, T]``."""
         n = self.scale.shape[0]
         s = jnp.linspace(0.0, 1.0, self.n_steps + 1)
+        if periodic:
+            return self._periodic_init(key, amplitude, n_modes, s)
         modes = jnp.stack([jnp.sin((j + 1) * jnp.pi * s) for j in range(n_modes)], axis=1)  # (K, M)
         if key is None:
             coef = jnp.zeros((n_modes, n)).at[jnp.arange(n) % n_modes, jnp.arange(n)].set(amplitude)
         else:
             coef = amplitude * jax.random.normal(key, (n_modes, n))
         return modes @ coef
+
+
+    def _periodic_init(self, key, amplitude, n_modes, s):
+        n = self.scale.shape[0]
+        j = jnp.arange(1, n_modes + 1, dtype=s.dtype)
+        if key is None:
+            phase = 0.5 * jnp.pi * jnp.arange(n, dtype=s.dtype)[None, :] * jnp.ones((n_modes, 1))
+            coef = jnp.zeros((n_modes, n)).at[0].set(amplitude)
+        else:
+            k1, k2 = jax.random.split(key)
+            phase = jax.random.uniform(k1, (n_modes, n), s.dtype, 0.0, 2 * jnp.pi)
+            coef = amplitude * jax.random.uniform(k2, (n_modes, n), s.dtype, 0.2, 1.0) / j[:, None]
+        args = 2 * jnp.pi * j[None, :, None] * s[:, None, None] + phase[None]  # (K, M, n)
+        return jnp.sum(coef[None] * jnp.sin(args), axis=1)
+
+
+class PeriodicControls(AbstractControls):
+    """Controls repeated with period ``period``: ``controls(t) = base(t mod period)``.
+
+    A gait's controls over one period (:class:`~ldap_jax.Sampled` on ``[0, period]``), evaluated
+    over as many periods as a rollout asks. ``cycles`` only sets how many periods of the base's
+    breakpoints (its samples, where the slope jumps) :func:`ldap_jax.reference` steps onto.
+
+    Args:
+        base: the controls over ``[0, period]``.
+        period: the period (s).
+        cycles: periods whose breakpoints are reported (default 1; :meth:`over` sets it).
+    """
+
+    base: AbstractControls
+    period: Array = eqx.field(converter=jnp.asarray)
+    cycles: int = eqx.field(static=True, default=1)
+
+    @property
+    def n_channels(self) -> int:
+        return self.base.n_channels
+
+    def __call__(self, t):
+        t = jnp.asarray(t, self.period.dtype)
+        return self.base(t - self.period * jnp.floor(t / self.period))
+
+    def over(self, cycles: int) -> PeriodicControls:
+        """The same controls, with the breakpoints of ``cycles`` periods."""
+        return PeriodicControls(self.base, self.period, int(cycles))
+
+    def breakpoints(self):
+        b = self.base.breakpoints()
+        if b is None:
+            return None
+        k = jnp.arange(self.cycles, dtype=b.dtype)
+        return (b[None, :] + self.period * k[:, None]).reshape(-1)
 
 
 class SinusoidGait(AbstractParameterization):
@@ -129,7 +184,7 @@ class SinusoidGait(AbstractParameterization):
         w = jnp.broadcast_to(w, a.shape)
         return Sinusoids(a * self.scale[:, None], w, p)
 
-    def init(self, key=None, *, amplitude=0.3):
+    def init(self, key=None, *, amplitude=0.3, periodic: bool = False):
         """Amplitudes ``amplitude`` (or ``amplitude * U(0.5, 1.5)`` per entry with ``key``),
         frequencies ``(j + 1) * frequency``, phases ``pi/2`` apart between channels (or uniform
         with ``key``)."""

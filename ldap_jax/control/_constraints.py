@@ -1,0 +1,262 @@
+"""Constraints of an optimal control task, as composable terms, and the bounds at the nodes.
+
+Each constraint is a small module with one ``residual`` method. :func:`~ldap_jax.control.solve`
+holds them exactly (equalities and inequalities of its interior-point method);
+:func:`~ldap_jax.control.optimize` minimises their quadratic penalties instead, weighted by
+``weight`` (ignored by ``solve``). Four kinds, by where they apply:
+
+* **terminal** equalities ``r(node_N, q_0) = 0`` (:class:`TerminalPose`, :class:`TerminalRest`,
+  :class:`NetDisplacement`, :class:`TerminalConstraint`);
+* **path** inequalities ``g(t_k, q_k, qdot_k, c_k) <= 0`` at every node (:class:`PathConstraint`);
+* **initial** equalities ``r(node_0, c_0) = 0`` on a free start (:class:`InitialRest`,
+  :class:`InitialConstraint`): the anchor of a periodic task;
+* the **boundary** condition :class:`Periodic`, which makes the start a decision variable and
+  asks the reduced state and the controls to return after one period.
+
+A constraint of your own subclasses :class:`AbstractTerminalConstraint`,
+:class:`AbstractPathConstraint` or :class:`AbstractInitialConstraint` and overrides ``residual``.
+"""
+
+from __future__ import annotations
+
+import abc
+from collections.abc import Callable
+from typing import Any
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from .._typing import ArrayLike
+from ._terms import bound_penalty, displacement, pose_error
+
+__all__ = [
+    "AbstractConstraint",
+    "AbstractTerminalConstraint",
+    "AbstractPathConstraint",
+    "AbstractInitialConstraint",
+    "TerminalPose",
+    "TerminalRest",
+    "NetDisplacement",
+    "TerminalConstraint",
+    "PathConstraint",
+    "InitialRest",
+    "InitialConstraint",
+    "Periodic",
+    "Bounds",
+]
+
+
+class AbstractConstraint(eqx.Module):
+    """A constraint; its ``weight`` (a field of every concrete constraint) is its weight in the
+    penalty form (:meth:`Task.loss`)."""
+
+    def penalty(self, r: Array) -> Array:
+        """The penalty of the residual ``r`` (equalities: ``weight |r|^2``)."""
+        return self.weight * jnp.sum(r**2)
+
+
+class AbstractTerminalConstraint(AbstractConstraint):
+    """An equality ``residual(system, node_N, q0) = 0`` at the last node."""
+
+    @abc.abstractmethod
+    def residual(self, system: Any, obs: Any, q0: Array) -> Float[Array, " k"]: ...
+
+
+class AbstractPathConstraint(AbstractConstraint):
+    """An inequality ``residual(system, t_k, node_k, c_k) <= 0`` at every node ``k = 0 .. N``."""
+
+    @abc.abstractmethod
+    def residual(self, system: Any, t: Array, obs: Any, c: Array) -> Float[Array, " k"]: ...
+
+    def penalty(self, r: Array) -> Array:
+        return self.weight * jnp.sum(jnp.maximum(r, 0.0) ** 2)
+
+
+class AbstractInitialConstraint(AbstractConstraint):
+    """An equality ``residual(system, node_0, c_0) = 0`` on a free (periodic) start."""
+
+    @abc.abstractmethod
+    def residual(self, system: Any, obs: Any, c: Array) -> Float[Array, " k"]: ...
+
+
+class TerminalPose(AbstractTerminalConstraint):
+    """The pose at ``t_N`` equals ``goal = (x, y, theta)``: ``log(g_goal^-1 g_N) = 0``
+    (:func:`pose_error`). Penalty: ``w_heading e_1^2 + w_position (e_2^2 + e_3^2)``."""
+
+    goal: Float[Array, " 3"] = eqx.field(converter=jnp.asarray)
+    w_heading: Array = eqx.field(default=1.0, converter=jnp.asarray)
+    w_position: Array = eqx.field(default=1.0, converter=jnp.asarray)
+
+    @property
+    def weight(self) -> Array:  # type: ignore[override]
+        return self.w_position
+
+    def residual(self, system, obs, q0):
+        return pose_error(obs.q, self.goal)
+
+    def penalty(self, r):
+        return self.w_heading * r[0] ** 2 + self.w_position * (r[1] ** 2 + r[2] ** 2)
+
+    def terminal(self, system, obs, q0):
+        """The penalty at the node (the form :class:`AbstractTerm` uses)."""
+        return self.penalty(self.residual(system, obs, q0))
+
+
+class TerminalRest(AbstractTerminalConstraint):
+    """The minimal velocities ``v = system.velocities_from_qdot(q, qdot)`` with indices
+    ``indices`` vanish at ``t_N`` (the car's wheel rate ``(0,)``; the snakeboard's board speed
+    ``s``, ``(2,)``)."""
+
+    indices: tuple[int, ...] = eqx.field(static=True)
+    weight: Array = eqx.field(default=1.0, converter=jnp.asarray)
+
+    def residual(self, system, obs, q0=None):
+        v = system.velocities_from_qdot(obs.q, obs.qdot)
+        return v[jnp.asarray(self.indices, int)]
+
+    def terminal(self, system, obs, q0):
+        return self.penalty(self.residual(system, obs, q0))
+
+
+class NetDisplacement(AbstractTerminalConstraint):
+    """A prescribed net displacement from ``q_0`` to ``q_N``: any subset of ``dx``, ``dy`` (m, in
+    the body frame of ``q_0``) and ``dtheta`` (rad, not wrapped) given (:func:`displacement`); for
+    a gait, the displacement per cycle.
+
+    Args:
+        dx, dy, dtheta: the targets; ``None`` leaves a component free.
+        weight: penalty weight.
+    """
+
+    target: Float[Array, " k"]
+    components: tuple[int, ...] = eqx.field(static=True)
+    weight: Array = eqx.field(default=1.0, converter=jnp.asarray)
+
+    def __init__(self, dx=None, dy=None, dtheta=None, *, weight: ArrayLike = 1.0):
+        given = [(i, x) for i, x in enumerate((dx, dy, dtheta)) if x is not None]
+        if not given:
+            raise ValueError("NetDisplacement: give at least one of 'dx', 'dy', 'dtheta'")
+        self.components = tuple(i for i, _ in given)
+        self.target = jnp.stack([jnp.asarray(x, jnp.result_type(float)) for _, x in given])
+        if self.target.ndim != 1:
+            raise ValueError(f"NetDisplacement: each target must be a scalar, got shape {self.target.shape}")
+        self.weight = jnp.asarray(weight)
+
+    def residual(self, system, obs, q0):
+        return displacement(obs.q, q0)[jnp.asarray(self.components)] - self.target
+
+
+class TerminalConstraint(AbstractTerminalConstraint):
+    """A user equality ``fn(q_N, qdot_N) = 0`` at the last node (``fn`` returns a vector)."""
+
+    fn: Callable
+    weight: Array = eqx.field(default=1.0, converter=jnp.asarray)
+
+    def residual(self, system, obs, q0):
+        return jnp.atleast_1d(self.fn(obs.q, obs.qdot))
+
+
+class PathConstraint(AbstractPathConstraint):
+    """A user inequality ``fn(t, q, qdot, c) <= 0`` at every node (``fn`` returns a scalar or a
+    vector): an obstacle (``r^2 - |p - p_obs|^2 <= 0``), a speed limit, a state-dependent
+    control bound. Held at the nodes; between them the motion is not checked."""
+
+    fn: Callable
+    weight: Array = eqx.field(default=1.0, converter=jnp.asarray)
+
+    def residual(self, system, t, obs, c):
+        return jnp.atleast_1d(self.fn(t, obs.q, obs.qdot, c))
+
+
+class InitialRest(AbstractInitialConstraint):
+    """The minimal velocities with indices ``indices`` vanish at the (free) start: the anchor of
+    a periodic gait (the snakeboard's board speed ``s``: ``(2,)``; the car's wheel rate: ``(0,)``)."""
+
+    indices: tuple[int, ...] = eqx.field(static=True)
+    weight: Array = eqx.field(default=1.0, converter=jnp.asarray)
+
+    def residual(self, system, obs, c):
+        v = system.velocities_from_qdot(obs.q, obs.qdot)
+        return v[jnp.asarray(self.indices, int)]
+
+
+class InitialConstraint(AbstractInitialConstraint):
+    """A user equality ``fn(q_0, qdot_0, c_0) = 0`` on the (free) start."""
+
+    fn: Callable
+    weight: Array = eqx.field(default=1.0, converter=jnp.asarray)
+
+    def residual(self, system, obs, c):
+        return jnp.atleast_1d(self.fn(obs.q, obs.qdot, c))
+
+
+class Periodic(AbstractConstraint):
+    """The boundary condition of a gait: one period ``[0, T]``, with the start free.
+
+    The start's group element is the identity (the symmetry) and the ``cyclic`` shape
+    coordinates (by name; e.g. a rotor or wheel angle, which nothing depends on) start at 0;
+    the rest of the start's reduced state is a decision variable. At ``t_N = T`` the reduced
+    state (the non-cyclic shape, and the momenta that the next step reads) and the controls
+    equal those at ``t_0``; the group moves by the net displacement per cycle, and the cyclic
+    coordinates drift freely.
+
+    Args:
+        cyclic: names of the cyclic shape coordinates (default: none).
+        weight: penalty weight of the return conditions.
+    """
+
+    cyclic: tuple[str, ...] = eqx.field(static=True, default=())
+    weight: Array = eqx.field(default=1.0, converter=jnp.asarray)
+
+
+class Bounds(eqx.Module):
+    """Box bounds at the nodes: ``q_lower <= q_k <= q_upper`` and ``u_lower <= c_k <= u_upper``
+    (physical units; infinite entries are off; lower and upper may differ in magnitude).
+
+    Build by name with :meth:`of`, e.g. ``lc.Bounds.of(lj.Snakeboard(), q={"phi": 1.0},
+    u={"f_psi": 0.1, "f_phi": (-0.05, 0.1)})`` (a number ``b`` means ``[-b, b]``).
+
+    Attributes:
+        q_lower, q_upper: (d,). u_lower, u_upper: (n_controls,). weight: penalty weight (the
+            penalty form: ``weight * h * (excess^2)`` summed over the nodes, controls scaled).
+    """
+
+    q_lower: Float[Array, " d"]
+    q_upper: Float[Array, " d"]
+    u_lower: Float[Array, " n"]
+    u_upper: Float[Array, " n"]
+    weight: Array = eqx.field(default=100.0, converter=jnp.asarray)
+
+    @classmethod
+    def of(cls, system, *, q: dict | None = None, u: dict | None = None, weight: float = 100.0) -> Bounds:
+        """Bounds named by coordinate (``x``, ``y``, ``theta`` and ``system.shape_names``) and
+        control channel (``system.control_names``); each value ``b`` (``[-b, b]``) or ``(lo, hi)``.
+
+        Raises:
+            ValueError: an unknown name, or ``lo >= hi``.
+        """
+        coords = ("x", "y", "theta", *system.shape_names)
+        q_lo, q_hi = _by_name("q", q or {}, coords)
+        u_lo, u_hi = _by_name("u", u or {}, tuple(system.control_names))
+        return cls(jnp.asarray(q_lo), jnp.asarray(q_hi), jnp.asarray(u_lo), jnp.asarray(u_hi), weight)
+
+    def penalty(self, q: Array, c: Array, scale: Array, h: Array) -> Array:
+        """``weight * h * (bound_penalty(q) + bound_penalty(c / scale))`` at one node."""
+        pen = bound_penalty(q, self.q_lower, self.q_upper)
+        pen = pen + bound_penalty(c / scale, self.u_lower / scale, self.u_upper / scale)
+        return self.weight * h * pen
+
+
+def _by_name(what: str, spec: dict, names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+    lo, hi = np.full(len(names), -np.inf), np.full(len(names), np.inf)
+    for key, value in spec.items():
+        if key not in names:
+            raise ValueError(f"Bounds: unknown {what} name {key!r}; the names are {names}")
+        a, b = (-float(value), float(value)) if np.ndim(value) == 0 else (float(value[0]), float(value[1]))
+        if not a < b:
+            raise ValueError(f"Bounds: the {what} bound of {key!r} must have lower < upper, got ({a}, {b})")
+        i = names.index(key)
+        lo[i], hi[i] = a, b
+    return lo, hi

@@ -1,0 +1,221 @@
+"""Periodic gaits as hard-constrained limit cycles: the builder and the built-in gaits.
+
+A gait is a periodic motion of the reduced state (everything invariant under SE(2): the shape,
+the shape velocities, the body velocities or momenta; for RDP the momenta the next step reads),
+driven by periodic controls, that moves the group by the same net displacement
+``dg = g(0)^-1 g(T)`` every cycle. Its start is a decision variable on the constraint manifold,
+with the group at the identity and the cyclic shape coordinates (a rotor or wheel angle) at 0.
+
+A cycle needs an *anchor*. For the snakeboard, periodicity alone leaves the problem unbounded:
+the board speed ``s`` obeys ``s' = a(t) s + b(t)`` with ``a = -1/2 d/dt ln(m l^2 - I sin^2 phi)``
+(from the momentum equation), so ``int_0^T a dt = 0`` for every periodic ``phi``: the homogeneous
+solution is periodic, and adding any multiple of it keeps every return condition while the board
+coasts (a solver maximising distance runs off to thousands of metres). The snakeboard gaits
+therefore start each cycle with the board at rest (``s = 0``; the rotor and the wheels may turn):
+any periodic ``s`` with a zero can be shifted in time to satisfy it. For the car the family of
+time-shifted cycles is nearly flat, and a phase condition fixes it: the rear wheel is at rest at
+the cycle's start.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from .._validation import check_positive_int
+from ..integrators import AbstractIntegrator
+from ..systems import AbstractSystem, Car, Snakeboard
+from ._build import make_task
+from ._constraints import AbstractConstraint, Bounds, InitialRest, NetDisplacement, Periodic
+from ._parameterizations import SampledControls
+from ._task import Guess, Task
+from ._terms import AbstractTerm, Displacement, Effort, Rotation
+from ._tasks import car_effort_scale
+
+__all__ = ["make_gait", "drive_gait", "turn_gait", "sideways_gait"]
+
+
+def _period(period: Any) -> float:
+    if isinstance(period, bool) or not isinstance(period, (int, float, np.floating, np.integer)):
+        raise TypeError(f"'period' must be a positive number (s), got {period!r}")
+    if not (math.isfinite(float(period)) and float(period) > 0):
+        raise ValueError(f"'period' must be positive and finite (s), got {period!r}")
+    return float(period)
+
+
+def _steps(n_steps: Any) -> int:
+    n = check_positive_int("n_steps", n_steps)
+    if n < 2:
+        raise ValueError(f"'n_steps' of a gait must be at least 2 (nodes per period), got {n}")
+    return n
+
+
+def make_gait(
+    system: AbstractSystem,
+    *,
+    period: float,
+    n_steps: int,
+    objective: tuple[AbstractTerm, ...],
+    constraints: tuple[AbstractConstraint, ...] = (),
+    cyclic: tuple[str, ...] = (),
+    bounds: Bounds | None = None,
+    scale: Any = None,
+    integrator: AbstractIntegrator | None = None,
+    guess: Guess | None = None,
+    name: str = "gait",
+) -> Task:
+    """A periodic gait task of any system: :func:`make_task` with :class:`Periodic` and per-step
+    controls over one period.
+
+    Args:
+        system: the model (``lj.Snakeboard()``, ``lj.roller_racer()``, any ``lj.System``).
+        period: the period T (s, > 0).
+        n_steps: nodes per period N (>= 2).
+        objective: objective terms (e.g. ``(lc.Displacement(),)``: the displacement per cycle).
+        constraints: further constraints: a prescribed displacement per cycle
+            (``lc.NetDisplacement(dx=..., dy=..., dtheta=...)``), the anchor on the start
+            (``lc.InitialRest(indices)``), path constraints.
+        cyclic: names of the cyclic shape coordinates (start at 0, drift freely).
+        bounds: bounds at the nodes (``lc.Bounds.of(system, q=..., u=...)``).
+        scale: per-channel control scale (default: the control bounds' half-widths where finite,
+            else 1).
+        integrator: an RDP integrator (default ``lj.RDP(order=4)``).
+        guess: how the default guess is made (default: one smooth periodic guess).
+        name: the task's name.
+
+    Returns:
+        A periodic :class:`Task`; ``lc.solve(task)`` returns :class:`GaitParams` parameters.
+
+    Raises:
+        TypeError, ValueError: ``period <= 0``, ``n_steps < 2``, and as :func:`make_task`.
+    """
+    period, n_steps = _period(period), _steps(n_steps)
+    m = system.n_controls
+    if scale is None:
+        scale = np.ones(m)
+        if bounds is not None:
+            width = 0.5 * (np.asarray(bounds.u_upper) - np.asarray(bounds.u_lower))
+            scale = np.where(np.isfinite(width), width, 1.0)
+    return make_task(
+        system,
+        t_final=period,
+        n_steps=n_steps,
+        objective=tuple(objective),
+        constraints=(Periodic(tuple(cyclic)), *constraints),
+        bounds=bounds,
+        controls=SampledControls(period, n_steps, np.asarray(scale, float)),
+        integrator=integrator,
+        guess=guess,
+        name=name,
+    )
+
+
+def _torque_bounds(sb: Snakeboard, max_torque, max_steer) -> Bounds:
+    return Bounds.of(sb, q={"phi": max_steer}, u=dict(zip(sb.control_names, max_torque)))
+
+
+def drive_gait(
+    system: Snakeboard | None = None,
+    *,
+    period: float = math.pi,
+    n_steps: int = 100,
+    max_torque: Any = (0.1, 0.1),
+    max_steer: Any = 1.0,
+    integrator: AbstractIntegrator | None = None,
+) -> Task:
+    """The snakeboard's drive gait: maximise the forward displacement per cycle (along the start's
+    heading) with zero net rotation, the board at rest at the cycle's start.
+
+    Args:
+        system: default ``lj.Snakeboard()``.
+        period: T (s, default pi). n_steps: nodes per period (default 100).
+        max_torque: bounds of the rotor and steering torques (N m, default 0.1 each; a number
+            ``b`` per channel means ``[-b, b]``, a pair ``(lo, hi)`` an asymmetric bound).
+        max_steer: bound of the steering angle ``phi`` (rad, default 1; or ``(lo, hi)``).
+        integrator: default ``lj.RDP(order=4)``.
+    """
+    sb = system if system is not None else Snakeboard()
+    return make_gait(
+        sb,
+        period=period,
+        n_steps=n_steps,
+        objective=(Displacement((1.0, 0.0)),),
+        constraints=(InitialRest((0, 2)), NetDisplacement(dtheta=0.0)),
+        cyclic=("psi",),
+        bounds=_torque_bounds(sb, max_torque, max_steer),
+        integrator=integrator,
+        guess=Guess(amplitude=0.5),
+        name="drive_gait",
+    )
+
+
+def turn_gait(
+    system: Snakeboard | None = None,
+    *,
+    period: float = math.pi,
+    n_steps: int = 100,
+    max_torque: Any = (0.1, 0.1),
+    max_steer: Any = 1.0,
+    starts: int = 16,
+    integrator: AbstractIntegrator | None = None,
+) -> Task:
+    """The snakeboard's turn gait: maximise the rotation per cycle (counter-clockwise) with zero net
+    translation, the board at rest at the cycle's start; bounds as :func:`drive_gait`.
+
+    The problem has many local optima (random starts end anywhere between 0.01 and 0.1 rad per
+    cycle), so the default guess is a batch of ``starts`` random periodic guesses (default 16),
+    which ``lc.solve`` runs under ``vmap``, returning the best converged one."""
+    sb = system if system is not None else Snakeboard()
+    return make_gait(
+        sb,
+        period=period,
+        n_steps=n_steps,
+        objective=(Rotation(),),
+        constraints=(InitialRest((0, 2)), NetDisplacement(dx=0.0, dy=0.0)),
+        cyclic=("psi",),
+        bounds=_torque_bounds(sb, max_torque, max_steer),
+        integrator=integrator,
+        guess=Guess(amplitude=0.7, starts=check_positive_int("starts", starts)),
+        name="turn_gait",
+    )
+
+
+def sideways_gait(
+    system: Car | None = None,
+    *,
+    shift: float = 0.05,
+    period: float = 4.0,
+    n_steps: int = 100,
+    max_torque: Any = 0.4,
+    max_steer: Any = 1.0,
+    integrator: AbstractIntegrator | None = None,
+) -> Task:
+    """The car's sideways gait: a net shift of ``shift`` (m, default 0.05) to the left per cycle
+    with the heading unchanged, minimum effort (the :func:`parallel_park` scales), the rear wheel
+    at rest at the cycle's start (the phase condition).
+
+    Args:
+        system: default ``lj.Car()``.
+        shift: sideways displacement per cycle (m). period: T (s, default 4). n_steps: nodes
+            per period (default 100).
+        max_torque: bound of the wheel torque (N m, default 0.4; or ``(lo, hi)``).
+        max_steer: bound of ``sigma`` (default 1; or ``(lo, hi)``).
+        integrator: default ``lj.RDP(order=4)``.
+    """
+    car = system if system is not None else Car()
+    scale = car_effort_scale(car)
+    return make_gait(
+        car,
+        period=period,
+        n_steps=n_steps,
+        objective=(Effort(scale),),
+        constraints=(InitialRest((0,)), NetDisplacement(dx=0.0, dy=shift, dtheta=0.0)),
+        cyclic=("psi",),
+        bounds=Bounds.of(car, q={"sigma": max_steer}, u={"f_psi": max_torque}),
+        scale=scale,
+        integrator=integrator,
+        guess=Guess(amplitude=0.3),
+        name="sideways_gait",
+    )
