@@ -44,6 +44,9 @@ needs only NumPy, so a benchmark can skip the baseline when CasADi is not instal
 
     python scripts/casadi_baseline.py                      # all tasks, table on stdout
     python scripts/casadi_baseline.py u_turn --repeats 5
+    python scripts/casadi_baseline.py --gaits [drive turn sideways] [--out gaits.json]
+
+The periodic gaits (``--gaits``) are in ``scripts/casadi_gaits.py``.
 """
 
 from __future__ import annotations
@@ -459,7 +462,19 @@ def main(argv: list[str] | None = None) -> None:
     )
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--guess", choices=("rest", "interpolated"), default=None)
+    parser.add_argument(
+        "--gaits",
+        action="store_true",
+        help="run the periodic gaits instead (scripts/casadi_gaits.py; TASK: drive, turn, sideways)",
+    )
+    parser.add_argument("--out", default=None, help="with --gaits: write the results as JSON to this file")
+    import casadi_gaits  # here: the gait baseline imports this module
+
+    casadi_gaits.add_arguments(parser, positional=False)
     args = parser.parse_args(argv)
+    if args.gaits:
+        casadi_gaits.run_cli(parser, args, args.tasks)
+        return
     for t in args.tasks:
         if t not in TASKS:
             parser.error(f"unknown task {t!r}; expected one of {', '.join(TASKS)}")

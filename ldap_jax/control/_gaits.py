@@ -116,6 +116,15 @@ def _torque_bounds(sb: Snakeboard, max_torque, max_steer) -> Bounds:
     return Bounds.of(sb, q={"phi": max_steer}, u=dict(zip(sb.control_names, max_torque)))
 
 
+def _drive_guess(n_steps: int) -> np.ndarray:
+    """The drive gait's default guess (scaled controls): the rotor torque at twice the steering
+    frequency, ``0.9 sin(4 pi t / T)``, and the steering torque ``-0.9 cos(2 pi t / T)``. Smaller
+    amplitudes and random periodic guesses (8 of 8 tried) converge to a nearby local optimum
+    (0.2620069 m per cycle, against 0.2620924 from this one: IPOPT's best of 5 on the same problem)."""
+    s = np.linspace(0.0, 1.0, n_steps + 1)
+    return np.stack([0.9 * np.sin(4 * np.pi * s), -0.9 * np.cos(2 * np.pi * s)], axis=1)
+
+
 def drive_gait(
     system: Snakeboard | None = None,
     *,
@@ -146,7 +155,7 @@ def drive_gait(
         cyclic=("psi",),
         bounds=_torque_bounds(sb, max_torque, max_steer),
         integrator=integrator,
-        guess=Guess(amplitude=0.5),
+        guess=Guess(controls=_drive_guess(n_steps)),
         name="drive_gait",
     )
 

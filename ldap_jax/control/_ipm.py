@@ -221,7 +221,7 @@ def _newton_step(st: IPMState, d: Derivatives, b: _Bounds, mu: Array, options: I
         mat = QPMatrices(
             Wp=d.Wp + delta * jnp.eye(s, dtype=dtype),
             G=d.G,
-            W=W0 + delta * jnp.eye(n + m, dtype=dtype),
+            W=W0 + delta * jnp.eye(n + m, dtype=dtype)[None],
             Z=d.Z,
             QK=QK0 + delta * jnp.eye(n, dtype=dtype),
             C=d.CK,

@@ -122,7 +122,7 @@ def spd_solve(h: Array, rhs: Array) -> tuple[Array, Bool[Array, ""]]:
         piv = t[k, k]
         piv_ok = piv_ok & (piv > 0)
         col = t[:, k] / jnp.where(piv > 0, piv, 1.0)
-        t = t - jnp.outer(col, t[k, :]) * (jnp.arange(m) > k)[:, None]
+        t = t - jnp.outer(col, t[k, :]) * (jnp.arange(m) > k).astype(t.dtype)[:, None]
     return solve(h, rhs), piv_ok
 
 

@@ -59,12 +59,15 @@ class Guess(eqx.Module):
             (a leading axis) of random guesses, which :func:`~ldap_jax.control.solve` runs under
             ``vmap`` and from which it returns the best converged solution.
         seed: the seed of those random guesses.
+        controls: explicit scaled node controls ``(N + 1, n_channels)`` for the deterministic
+            guess (``key=None``, one start), or None.
     """
 
     amplitude: float = eqx.field(static=True, default=0.3)
     gait: SinusoidGait | None = None
     starts: int = eqx.field(static=True, default=1)
     seed: int = eqx.field(static=True, default=0)
+    controls: Array | None = None
 
 
 class Task(eqx.Module):
@@ -254,7 +257,9 @@ class Task(eqx.Module):
 def _initial_guess(task: Task, key: PRNGKeyArray | None, amplitude: float) -> Any:
     # one compiled program (op by op, a guess compiled some 15 small programs on a first call)
     p = task.parameterization
-    if task.guess.gait is not None and isinstance(p, SampledControls):
+    if task.guess.controls is not None and key is None:
+        controls = jnp.asarray(task.guess.controls, p.scale.dtype)
+    elif task.guess.gait is not None and isinstance(p, SampledControls):
         gp = task.guess.gait.init(key, amplitude=amplitude)
         ts = p.t0 + (p.t_final - p.t0) * jnp.linspace(0.0, 1.0, p.n_steps + 1)
         controls = jax.vmap(task.guess.gait.controls(gp))(ts) / p.scale[None, :]
