@@ -24,6 +24,10 @@ from ._constraints import Periodic as Periodic
 from ._constraints import TerminalConstraint as TerminalConstraint
 from ._constraints import TerminalPose as TerminalPose
 from ._constraints import TerminalRest as TerminalRest
+from ._gait_analysis import cycle_map as cycle_map
+from ._gait_analysis import floquet as floquet
+from ._gait_analysis import monodromy as monodromy
+from ._gait_analysis import replay_gait as replay_gait
 from ._gaits import drive_gait as drive_gait
 from ._gaits import make_gait as make_gait
 from ._gaits import sideways_gait as sideways_gait

@@ -1,0 +1,186 @@
+"""A gait's cycle map, its Floquet multipliers, and its replay over several cycles on the reference.
+
+The *cycle map* ``P`` of a periodic task takes the start's reduced state ``z = (r, v)`` (the
+non-cyclic shape coordinates and the minimal velocities; the group at the identity and the cyclic
+coordinates at 0) to the reduced state one period later, through the task's own discrete
+dynamics and its periodic controls. A gait is a fixed point, ``P(z*) = z*``. Its *monodromy*
+``M = dP/dz (z*)`` (by automatic differentiation) decides what happens to a perturbed start: its
+eigenvalues are the Floquet multipliers. All inside the unit circle: the gait is asymptotically
+stable (an error dies out cycle by cycle). One outside: unstable. On the unit circle: neutrally
+stable, and a Jordan block of size ``k`` at a multiplier 1 lets an error grow like ``n^(k-1)`` over
+``n`` cycles. The snakeboard and the car have multipliers at 1 (nothing pulls a drifted rotor or
+wheel speed back), so their gaits drift under any error and need feedback to be executed.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array
+
+from .. import lie
+from .._reference import reference
+from .._simulate import simulate
+from ._task import Task
+
+__all__ = ["cycle_map", "monodromy", "floquet", "replay_gait"]
+
+
+def _keep(task: Task) -> np.ndarray:
+    """Indices in ``q`` of the non-cyclic shape coordinates."""
+    names = task.system.shape_names
+    return np.asarray([3 + i for i, n in enumerate(names) if n not in task.periodic.cyclic], int)
+
+
+def reduced_state(task: Task, q: Array, qdot: Array) -> Array:
+    """The gait's reduced state ``(r, v)`` of a configuration and velocity."""
+    return jnp.concatenate([q[_keep(task)], task.system.velocities_from_qdot(q, qdot)])
+
+
+def _start(task: Task, params, z: Array) -> tuple[Array, Array]:
+    keep = _keep(task)
+    q = jnp.zeros((task.system.n_config,), z.dtype).at[keep].set(z[: keep.size])
+    c0 = task.controls(params)(jnp.zeros((), z.dtype))
+    return q, task.system.qdot_from_velocities(q, z[keep.size :], c0)
+
+
+def _one_cycle(task: Task, params, z: Array):
+    q0, qdot0 = _start(task, params, z)
+    traj = simulate(
+        task.system, q0, qdot0, task.controls(params), t_final=task.t_final, n_steps=task.n_steps,
+        integrator=task.integrator, save="final", check_constraints=False, divergence=None,
+    )
+    q, qdot = traj.q.reshape(-1, q0.shape[0])[-1], traj.qdot.reshape(-1, q0.shape[0])[-1]
+    return reduced_state(task, q, qdot), q[:3]
+
+
+def cycle_map(task: Task, params, z: Array) -> Array:
+    """``P(z)``: the reduced state after one period of the task's discrete dynamics, from the
+    start with reduced state ``z`` (group at the identity, cyclic coordinates at 0)."""
+    return _one_cycle(task, params, z)[0]
+
+
+@eqx.filter_jit
+def _analysis(task: Task, params):
+    q0, qdot0 = task.initial_state(params)
+    z0 = reduced_state(task, q0, qdot0)
+    (z1, g1) = _one_cycle(task, params, z0)
+    M = jax.jacfwd(lambda z: cycle_map(task, params, z))(z0)
+    return z0, z1, g1, M
+
+
+def monodromy(task: Task, params) -> tuple[Array, Array]:
+    """``(z*, M)``: the gait's start reduced state and the Jacobian of the cycle map there."""
+    z0, _, _, M = _analysis(task, params)
+    return z0, M
+
+
+def floquet(M: np.ndarray, *, cluster: float = 1e-3, rank_tol: float = 1e-7) -> dict:
+    """The Floquet multipliers of a monodromy matrix and the Jordan structure at 1.
+
+    Eigenvalues within ``cluster`` of 1 are taken as one multiplier 1 (a Jordan block of size
+    ``k`` perturbed by ``eps`` splits into eigenvalues ``eps^(1/k)`` apart, which is why the
+    eigenvalues alone are unreliable there); the block sizes follow from the ranks of
+    ``(M - I)^j`` (singular values above ``rank_tol`` times the largest).
+
+    Returns a dict: ``multipliers`` (complex array), ``moduli``, ``at_one`` (how many),
+    ``jordan_blocks`` (sizes of the blocks at 1, largest first), ``stability``
+    (``"asymptotically stable"``, ``"neutrally stable"`` or ``"unstable"``) and ``growth``
+    (the power of the cycle count by which an error grows: the largest block size minus 1).
+    """
+    M = np.asarray(M, float)
+    n = M.shape[0]
+    lam = np.linalg.eigvals(M)
+    near = np.abs(lam - 1.0) < cluster
+    a = int(np.sum(near))
+    blocks: list[int] = []
+    if a:
+        ranks = [n]
+        P = np.eye(n)
+        for _ in range(a):
+            P = P @ (M - np.eye(n))
+            s = np.linalg.svd(P, compute_uv=False)
+            ranks.append(int(np.sum(s > rank_tol * max(1.0, s[0]))))
+        at_least = [ranks[j] - ranks[j + 1] for j in range(a)]  # blocks of size >= j + 1
+        for j in range(a):
+            exactly = at_least[j] - (at_least[j + 1] if j + 1 < a else 0)
+            blocks += [j + 1] * max(exactly, 0)
+        blocks.sort(reverse=True)
+    moduli = np.abs(lam)
+    others = moduli[~near]
+    if np.any(others > 1 + cluster):
+        stability = "unstable"
+    elif a or np.any(np.abs(others - 1) <= cluster):
+        stability = "neutrally stable"
+    else:
+        stability = "asymptotically stable"
+    return {
+        "multipliers": lam,
+        "moduli": moduli,
+        "at_one": a,
+        "jordan_blocks": blocks,
+        "stability": stability,
+        "growth": (max(blocks) - 1) if blocks else 0,
+    }
+
+
+def replay_gait(task: Task, params, *, cycles: int = 3, rtol: float = 1e-11, atol: float = 1e-11) -> dict:
+    """Replay a gait for ``cycles`` periods on the high-accuracy reference (:func:`ldap_jax.reference`)
+    from the optimised start, and analyse its cycle on the model.
+
+    Args:
+        task: a periodic task (``lc.drive_gait()``, ``lc.make_gait(...)``).
+        params: its solution's parameters (``lc.solve(task).params``: :class:`GaitParams`).
+        cycles: periods to replay (a positive integer; default 3).
+        rtol, atol: the reference's tolerances (default 1e-11).
+
+    Returns:
+        A dict with ``displacement`` (cycles, 3): each cycle's net displacement
+        ``g(kT)^-1 g((k+1)T)`` as ``(dx, dy, dtheta)`` in that cycle's start frame, on the
+        reference; ``model_displacement`` (3,): the model's (every cycle of the periodic orbit
+        moves the same); ``return_error`` (cycles,): the largest entry of
+        ``|z_ref(kT) - z*|`` after each cycle (``z*``: the model orbit's reduced state at its
+        start: shape in rad or m, velocities in their units); ``displacement_error`` (cycles,):
+        ``|dg_ref - dg_model|`` per cycle (m and rad together); ``model_return_error``: the model's
+        own ``|P(z*) - z*|``; ``monodromy``, and the :func:`floquet` analysis of it
+        (``multipliers``, ``jordan_blocks``, ``stability``, ``growth``); ``q_ref`` and ``t`` of
+        the replay; ``reference_result``.
+
+    Raises:
+        ValueError: a task that is not periodic; ``cycles`` not a positive integer.
+    """
+    if task.periodic is None:
+        raise ValueError(f"replay_gait needs a periodic task (lc.drive_gait(), lc.make_gait(...)), got {task.name!r}")
+    if isinstance(cycles, bool) or not isinstance(cycles, (int, np.integer)) or cycles < 1:
+        raise ValueError(f"'cycles' must be a positive integer, got {cycles!r}")
+    cycles = int(cycles)
+    z0, z1, g1, M = (np.asarray(x) for x in _analysis(task, params))
+    q0, qdot0 = task.initial_state(params)
+    n = task.n_steps
+    ts = np.linspace(0.0, cycles * float(task.t_final), cycles * n + 1)
+    ref = reference(task.system, q0, qdot0, task.controls(params).over(cycles), ts, rtol=rtol, atol=atol)
+    q, qdot = np.asarray(ref.q), np.asarray(ref.qdot)
+    idx = np.arange(cycles + 1) * n
+    z_ref = np.asarray(jax.vmap(lambda a, b: reduced_state(task, a, b))(q[idx], qdot[idx]))
+    g = q[idx, :3]
+    dg = np.array(jax.vmap(lambda a, b: lie.compose(lie.inverse(a), b))(g[:-1], g[1:]))
+    dg[:, 2] = [math.remainder(x, 2 * math.pi) for x in dg[:, 2]]
+    g1 = np.array(g1)
+    g1[2] = math.remainder(float(g1[2]), 2 * math.pi)
+    out = {
+        "displacement": dg,
+        "model_displacement": g1,
+        "return_error": np.max(np.abs(z_ref[1:] - z0[None]), axis=1),
+        "displacement_error": np.max(np.abs(dg - g1[None]), axis=1),
+        "model_return_error": float(np.max(np.abs(z1 - z0))),
+        "monodromy": M,
+        "q_ref": q,
+        "t": ts,
+        "reference_result": ref.result,
+    }
+    out.update(floquet(M))
+    return out

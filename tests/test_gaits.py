@@ -1,0 +1,138 @@
+"""Periodic gaits as hard-constrained limit cycles: the built-in gaits solved from their default
+guesses, periodicity and prescribed displacements on the model, the replay over several cycles
+on the reference, the cycle map's monodromy and Floquet analysis, sensitivities of the optimum
+by the implicit function theorem, the generic builder on another system, and bad input."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import ldap_jax as lj
+from ldap_jax import control as lc
+
+pytestmark = pytest.mark.xdist_group("gaits")  # one worker compiles the drive gait's programs
+
+
+@pytest.fixture(scope="module")
+def drive():
+    task = lc.drive_gait()
+    return task, lc.solve(task)
+
+
+def test_drive_gait_is_a_periodic_orbit_that_holds_on_the_reference(drive):
+    """From its default guess with default settings: converged with the model's constraints met to
+    1e-9; one cycle of the model returns to its start's reduced state to 1e-9, with the prescribed
+    zero net rotation met to 1e-9 and the bounds held at the nodes; replayed for 3 cycles on the
+    reference, each cycle returns to within 1e-5 of the model's orbit and moves as the model's
+    cycle does to 1e-6."""
+    task, sol = drive
+    assert bool(sol.converged), lc.SOLVER_RESULTS[sol.result]
+    assert float(sol.max_violation) <= 1e-9
+    rp = lc.replay_gait(task, sol.params, cycles=3)
+    assert rp["reference_result"] == lj.RESULTS.successful
+    assert rp["model_return_error"] <= 1e-9
+    assert abs(float(rp["model_displacement"][2])) <= 1e-9
+    # the objective is the displacement along the start's heading, per cycle
+    assert float(rp["model_displacement"][0]) == pytest.approx(-float(sol.cost), rel=1e-12)
+    assert np.all(rp["return_error"] < 1e-5), rp["return_error"]
+    assert np.all(rp["displacement_error"] < 1e-6), rp["displacement_error"]
+    c = np.asarray(task.parameterization.values(sol.params.controls))
+    assert np.max(np.abs(c)) <= 0.1 + 1e-12
+    assert np.max(np.abs(np.asarray(rp["q_ref"])[:, 4])) <= 1.0 + 1e-6  # phi on the reference
+    np.testing.assert_allclose(c[-1], c[0], atol=1e-9)  # u_N = u_0
+
+
+def test_monodromy_matches_finite_differences_of_the_cycle_map(drive):
+    """The Jacobian of the cycle map by autodiff against central differences of the map (the
+    matrix, not its eigenvalues, which the Jordan blocks at 1 make sensitive)."""
+    task, sol = drive
+    z0, M = lc.monodromy(task, sol.params)
+    P = eqx.filter_jit(lambda z: lc.cycle_map(task, sol.params, z))
+    z0, M = np.asarray(z0), np.asarray(M)
+    np.testing.assert_allclose(np.asarray(P(z0)), z0, atol=1e-9)  # a fixed point
+    eps = 1e-6
+    for i in range(z0.size):
+        e = np.zeros_like(z0)
+        e[i] = eps
+        fd = (np.asarray(P(z0 + e)) - np.asarray(P(z0 - e))) / (2 * eps)
+        np.testing.assert_allclose(M[:, i], fd, rtol=1e-6, atol=1e-7)
+
+
+def test_floquet_analysis_names_the_jordan_structure():
+    """Jordan blocks at 1 recovered from the ranks of (M - I)^j under a perturbation that splits
+    their eigenvalues; stable and unstable matrices classified."""
+    rng = np.random.default_rng(0)
+    J = np.eye(4) + np.diag([1.0, 1.0, 0.0], k=1)  # blocks of size 3 and 1 at 1
+    S = rng.normal(size=(4, 4)) + 3 * np.eye(4)
+    M = S @ J @ np.linalg.inv(S) + 1e-12 * rng.normal(size=(4, 4))
+    out = lc.floquet(M)
+    assert out["jordan_blocks"] == [3, 1] and out["at_one"] == 4 and out["growth"] == 2
+    assert out["stability"] == "neutrally stable"
+    assert lc.floquet(np.diag([0.5, -0.9]))["stability"] == "asymptotically stable"
+    assert lc.floquet(np.diag([1.1, 0.2]))["stability"] == "unstable"
+
+
+def test_drive_gait_sensitivities_match_finite_differences_of_resolves(drive):
+    """d(displacement per cycle)/d(torque bound, mass) by the implicit function theorem against
+    central differences of re-solves (rtol 1e-5)."""
+    task, sol = drive
+    p0 = sol.params
+
+    def distance(bound, m):
+        b = task.bounds
+        t = eqx.tree_at(
+            lambda t: (t.bounds.u_lower, t.bounds.u_upper, t.system.m),
+            task,
+            (b.u_lower.at[0].set(-bound), b.u_upper.at[0].set(bound), m),
+        )
+        return -lc.solve(t, p0, tol=1e-11).cost
+
+    b0, m0 = jnp.asarray(0.1), jnp.asarray(float(task.system.m))
+    grad = jax.grad(distance, argnums=(0, 1))(b0, m0)
+    for i, (x, eps) in enumerate(((b0, 1e-5), (m0, 1e-4))):
+        args = [b0, m0]
+        args[i] = x + eps
+        up = float(distance(*args))
+        args[i] = x - eps
+        down = float(distance(*args))
+        np.testing.assert_allclose(float(grad[i]), (up - down) / (2 * eps), rtol=1e-5)
+
+
+def test_roller_racer_gait_through_the_generic_builder():
+    """A gait of another System from the generic builder: the roller racer, driven by its hinge
+    torque, the most forward distance per cycle with no net rotation; converged, periodic on the
+    model to 1e-9 and returning on the reference."""
+    rr = lj.roller_racer()
+    task = lc.make_gait(
+        rr,
+        period=2.0,
+        n_steps=40,
+        objective=(lc.Displacement((1.0, 0.0)),),
+        constraints=(lc.InitialRest((1,)), lc.NetDisplacement(dtheta=0.0)),
+        bounds=lc.Bounds.of(rr, q={"phi": 0.8}, u={rr.control_names[0]: 1.0}),
+    )
+    sol = lc.solve(task)
+    assert bool(sol.converged), lc.SOLVER_RESULTS[sol.result]
+    rp = lc.replay_gait(task, sol.params, cycles=2)
+    assert rp["model_return_error"] <= 1e-9 and float(rp["model_displacement"][0]) > 1e-3
+    assert abs(float(rp["model_displacement"][2])) <= 1e-9
+    assert np.all(rp["return_error"] < 1e-5)
+
+
+def test_gait_bad_inputs_are_clear():
+    sb = lj.Snakeboard()
+    kw = dict(objective=(lc.Displacement(),), constraints=(lc.InitialRest((0, 2)),), cyclic=("psi",))
+    with pytest.raises(ValueError, match="'period'"):
+        lc.make_gait(sb, period=0.0, n_steps=10, **kw)
+    with pytest.raises(ValueError, match="'n_steps'"):
+        lc.make_gait(sb, period=1.0, n_steps=1, **kw)
+    with pytest.raises(ValueError, match="NetDisplacement"):
+        lc.NetDisplacement(dx=[0.1, 0.2])
+    with pytest.raises(ValueError, match="lower"):
+        lc.Bounds.of(sb, q={"phi": (1.0, -1.0)})
+    with pytest.raises(ValueError, match="periodic"):
+        lc.replay_gait(lc.parallel_park(n_steps=10), None)
+    with pytest.raises(ValueError, match="'cycles'"):
+        lc.replay_gait(lc.drive_gait(n_steps=10), None, cycles=0)
