@@ -314,6 +314,92 @@ def warm_first_call(task_name: str, log) -> dict:
     return dict(task=task_name, cold_process_s=times[0], warm_process_s=times[1])
 
 
+GAIT_OBJECTIVES = {"drive_gait": "m/cycle", "turn_gait": "rad/cycle", "sideways_gait": "effort"}
+
+
+def gait(name: str, cfg: Config, log, cycles: int = 10) -> dict:
+    """One built-in gait: ``lc.solve`` from its default guess (first and repeat times), replayed
+    ``cycles`` periods on the reference (return error, displacement error per cycle), the Floquet
+    multipliers; and CasADi + IPOPT on the same formulation (best of its starts)."""
+    task = getattr(lc, name)()
+    sol, first, repeat = _time(lambda: lc.solve(task), cfg.repeats)
+    rp = lc.replay_gait(task, sol.params, cycles=cycles)
+    value = -float(sol.cost) if name != "sideways_gait" else float(sol.cost)
+    row = dict(
+        gait=name,
+        objective=value,
+        unit=GAIT_OBJECTIVES[name],
+        converged=bool(sol.converged),
+        iterations=int(sol.iterations),
+        starts=int(sol.starts),
+        violation=float(sol.max_violation),
+        first_call_s=first,
+        repeat_s=repeat,
+        return_error=[float(x) for x in rp["return_error"]],
+        displacement_error=[float(x) for x in rp["displacement_error"]],
+        displacement=[float(x) for x in rp["model_displacement"]],
+        multipliers=[abs(complex(z)) for z in rp["multipliers"]],
+        jordan_blocks=rp["jordan_blocks"],
+        stability=rp["stability"],
+    )
+    log(
+        f"  ours {name}: {value:.7g} {row['unit']}, {row['iterations']} it, first {first:.1f} s, repeat "
+        f"{repeat:.3f} s, return error after {cycles} cycles {row['return_error'][-1]:.1e}"
+    )
+    try:
+        import casadi_gaits as cg
+    except ImportError:
+        log("  CasADi is not installed (pip install .[bench]): skipped")
+        return {"ours": row}
+    r = cg.run_gait(name.replace("_gait", ""), repeats=cfg.repeats)
+    ipopt = dict(
+        objective=float(r["objective"]),
+        iterations=int(r["iterations"]),
+        converged=bool(r["success"]),
+        best_start=int(r["best_start"]),
+        n_starts=int(r["n_starts"]),
+        first_call_s=float(r["best_first_call"]),
+        all_starts_s=float(r["all_starts"]),
+        repeat_s=float(r["repeat_time"]),
+    )
+    log(
+        f"  IPOPT {name}: {ipopt['objective']:.7g}, best of {ipopt['n_starts']}, "
+        f"repeat {ipopt['repeat_s']:.3f} s"
+    )
+    return {"ours": row, "ipopt": ipopt}
+
+
+def gait_markdown(gaits: dict) -> list[str]:
+    lines = [
+        "",
+        "## Periodic gaits (hard-constrained limit cycles, N = 100)",
+        "",
+        "IPOPT: RK4 multiple shooting on the same grid, bounds and exact effort, best of its starts.",
+        "",
+        "| gait | ours | IPOPT | ours it | IPOPT it | ours first / repeat [s] "
+        "| IPOPT first (best start) / all starts / repeat [s] | return error, cycle 1 / last "
+        "| Floquet: Jordan blocks at 1 |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name, g in gaits.items():
+        o, i = g["ours"], g.get("ipopt")
+        ip = (
+            (
+                f"{i['objective']:.7g}",
+                str(i["iterations"]),
+                f"{i['first_call_s']:.2f} / {i['all_starts_s']:.1f} / {i['repeat_s']:.3f}",
+            )
+            if i
+            else ("-",) * 3
+        )
+        lines.append(
+            f"| {name} | {o['objective']:.7g} {o['unit']} | {ip[0]} | {o['iterations']} | {ip[1]} | "
+            f"{o['first_call_s']:.1f} / {o['repeat_s']:.3f} | {ip[2]} | {o['return_error'][0]:.1e} / "
+            f"{o['return_error'][-1]:.1e} | {o['jordan_blocks']} ({o['stability']}) |"
+        )
+    return lines
+
+
 def markdown(res: dict) -> str:
     lines = [
         "# Optimal control: ldap_jax `lc.solve` vs CasADi + IPOPT",
@@ -440,7 +526,19 @@ def parse_args(argv=None):
         default=(),
         help="comma-separated seeds: also solve 16 random goals around each task per seed (e.g. 0,1,2)",
     )
+    p.add_argument(
+        "--gaits",
+        type=lambda t: tuple(x for x in t.split(",") if x),
+        default=None,
+        help="comma-separated built-in gaits to solve and compare with IPOPT (default: drive_gait with "
+        "--quick, else drive_gait,sideways_gait,turn_gait; '' for none)",
+    )
     args = p.parse_args(argv)
+    if args.gaits is None:
+        args.gaits = ("drive_gait",) if args.quick else ("drive_gait", "sideways_gait", "turn_gait")
+    bad = [g for g in args.gaits if g not in GAIT_OBJECTIVES]
+    if bad:
+        p.error(f"argument --gaits: unknown gait(s) {bad}; choose from {sorted(GAIT_OBJECTIVES)}")
     out = pathlib.Path(args.out)
     if out.exists() and not out.is_dir():
         p.error(f"argument --out: {args.out!r} exists and is not a directory")
@@ -491,9 +589,14 @@ def main(argv=None) -> int:
         res["robustness"] = robustness(cfg, log)
     if cfg.cache:
         res["warm"] = [warm_first_call(name, log) for name in cfg.tasks[:1]]
+    if args.gaits:
+        res["gaits"] = {}
+        for name in args.gaits:
+            log(name)
+            res["gaits"][name] = gait(name, cfg, log)
     res["total_s"] = time.perf_counter() - t0
     (out / "bench_control.json").write_text(json.dumps(res, indent=1, default=str) + "\n")
-    md = markdown(res)
+    md = markdown(res) + ("\n".join(gait_markdown(res["gaits"])) + "\n" if "gaits" in res else "")
     (out / "bench_control.md").write_text(md)
     print(md)
     log(f"wrote {out / 'bench_control.json'} and {out / 'bench_control.md'}")

@@ -35,7 +35,10 @@ ITERATIONS = {
 }
 #: the tasks of each model (the keys of ``lc.TASKS``; tests/test_faults.py checks that they agree)
 #: and the periodic gaits among them (SinusoidGait controls: ``lc.optimize`` only)
-MODEL_TASKS = {"car": ("parallel_park", "u_turn"), "snakeboard": ("forward_gait", "reach")}
+MODEL_TASKS = {
+    "car": ("parallel_park", "u_turn", "sideways_gait"),
+    "snakeboard": ("forward_gait", "reach", "drive_gait", "turn_gait"),
+}
 PERIODIC_TASKS = ("forward_gait",)
 INTEGRATORS = {
     "rdp": lambda: lj.RDP(),
@@ -242,6 +245,8 @@ def main(argv=None) -> int:
     else:
         n_iter = None if solver == "solve" else ITERATIONS[args.task][0 if args.quick else 1]
     params, info, losses = run(task, solver, n_iter, starts=args.starts, seed=args.seed, label=args.task)
+    if task.periodic is not None:
+        return gait_report(args, task, params, info, out)
     rp = lc.replay(task, params)
     record = {
         "model": args.model,
@@ -317,6 +322,55 @@ def main(argv=None) -> int:
     if "integrator_comparison" in record:
         print("integrator_comparison", json.dumps(record["integrator_comparison"], indent=1))
     print("wrote " + ", ".join(str(p) for p in written))
+    return 0
+
+
+def gait_report(args, task, params, info, out: pathlib.Path, cycles: int = 3) -> int:
+    """A periodic gait's record, figure and animation: ``cycles`` periods replayed on the
+    reference from the optimised start (:func:`lc.replay_gait`), the displacement and return
+    error of each, the Floquet multipliers; the shape-space loop and the path."""
+    from ldap_jax.plotting import animate
+
+    rp = lc.replay_gait(task, params, cycles=cycles)
+    record = {
+        "model": args.model,
+        "task": args.task,
+        "integrator": args.integrator,
+        "n_steps": task.n_steps,
+        "period": float(task.t_final),
+        **info,
+        "displacement_per_cycle": rp["displacement"].tolist(),
+        "model_displacement": rp["model_displacement"].tolist(),
+        "return_error": rp["return_error"].tolist(),
+        "displacement_error": rp["displacement_error"].tolist(),
+        "floquet_multipliers": [[float(z.real), float(z.imag)] for z in rp["multipliers"]],
+        "jordan_blocks": rp["jordan_blocks"],
+        "stability": rp["stability"],
+    }
+    stem = f"optimize_{args.model}_{args.task}"
+    (out / f"{stem}.json").write_text(json.dumps(record, indent=2, default=float) + "\n")
+    q = np.asarray(rp["q_ref"])
+    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(10, 4))
+    ax0.plot(q[:, 0], q[:, 1])
+    ax0.set(
+        xlabel="x [m]", ylabel="y [m]", title=f"{args.task}: {cycles} cycles on the reference", aspect="equal"
+    )
+    names = task.system.shape_names
+    keep = [i for i, n in enumerate(names) if n not in task.periodic.cyclic]
+    t = np.asarray(rp["t"])
+    for i in keep:
+        ax1.plot(t, q[:, 3 + i], label=names[i])
+    dx, dy, dth = rp["model_displacement"]
+    ax1.set(xlabel="t [s]", title=f"shape; per cycle dx={dx:.4g} m, dy={dy:.3g} m, dtheta={dth:.3g} rad")
+    ax1.legend()
+    fig.tight_layout()
+    fig.savefig(out / f"{stem}.png", dpi=110)
+    plt.close(fig)
+    animate(q, task.system, out / f"{args.task}.gif", t=t, title=f"{args.model} {args.task}")
+    keys = ("objective", "iterations", "wall_s", "stability")
+    print(json.dumps({k: record[k] for k in keys if k in record}, indent=1))
+    print("return error per cycle", np.array2string(rp["return_error"], precision=2))
+    print(f"wrote {out / (stem + '.json')}, {out / (stem + '.png')}, {out / (args.task + '.gif')}")
     return 0
 
 

@@ -167,7 +167,11 @@ def test_tasks_that_differ_only_outside_the_solver_share_its_program(car_solutio
     (the fixture's parallel_park and u_turn share one program this way)."""
     task, sol = car_solutions["parallel_park"]
     other = dataclasses.replace(
-        task, name="renamed", objective_weight=jnp.asarray(1.0), guess=lc.Guess(amplitude=0.05), checkpoint=True
+        task,
+        name="renamed",
+        objective_weight=jnp.asarray(1.0),
+        guess=lc.Guess(amplitude=0.05),
+        checkpoint=True,
     )
     with compiled_programs("trace") as names:
         again = lc.solve(other, task.init())
@@ -222,7 +226,9 @@ def test_solve_cost_is_the_effort_and_far_below_the_guess(car_solutions):
     )
     U = np.asarray(sol.params)  # scaled node controls
     t = np.linspace(0.0, 1.0, 200 * task.n_steps + 1)
-    fine = np.stack([np.interp(t, np.linspace(0, 1, task.n_steps + 1), U[:, i]) for i in range(U.shape[1])], 1)
+    fine = np.stack(
+        [np.interp(t, np.linspace(0, 1, task.n_steps + 1), U[:, i]) for i in range(U.shape[1])], 1
+    )
     trapezoid = float(task.t_final) * np.sum(0.5 * (fine[1:] ** 2 + fine[:-1] ** 2)) / (t.size - 1)
     assert float(sol.cost) == pytest.approx(trapezoid, rel=1e-6)
     rectangles = float(task.h) * np.sum(U**2)
@@ -296,8 +302,12 @@ def _random_qp(seed, K=12, n=4, m=2, p=2, s=3, stiff=0.0, near_identity=False):
         Wp=Wp @ Wp.T + np.eye(s), G=G, W=W, Z=Z, QK=QK @ QK.T + np.eye(n), C=rng.normal(size=(p, n))
     )
     rhs = QPVector(
-        wp=rng.normal(size=s), e0=rng.normal(size=n), w=rng.normal(size=(K - 1, n + m)),
-        e=rng.normal(size=(K - 1, n)), qK=rng.normal(size=n), c=rng.normal(size=p),
+        wp=rng.normal(size=s),
+        e0=rng.normal(size=n),
+        w=rng.normal(size=(K - 1, n + m)),
+        e=rng.normal(size=(K - 1, n)),
+        qK=rng.normal(size=n),
+        c=rng.normal(size=p),
     )
     return mat, rhs
 
@@ -545,7 +555,9 @@ def test_solve_bad_inputs_are_clear():
 def test_unreachable_goal_is_reported_not_converged():
     """A goal the torque bound cannot reach in time: no silent answer, converged=False with a reason."""
     task = lc.parallel_park(integrator=lj.RDP(), n_steps=40).with_options(goal=[30.0, 0.25, 0.0])
-    task = task.with_options(bounds=lc.Bounds.of(task.system, q={"sigma": 1.0}, u={"f_psi": 0.01, "u_sigma": 0.5}))
+    task = task.with_options(
+        bounds=lc.Bounds.of(task.system, q={"sigma": 1.0}, u={"f_psi": 0.01, "u_sigma": 0.5})
+    )
     sol = lc.solve(task, max_iterations=60)
     assert not bool(sol.converged)
     assert sol.result != lc.SOLVER_RESULTS.successful

@@ -103,18 +103,26 @@ def make_task(
         q0, qdot0 = _check_periodic(system, periodic, constraints, q0, qdot0, n_steps, integrator)
     else:
         if q0 is None or qdot0 is None:
-            raise ValueError("'q0' and 'qdot0' are required (a fixed start), or add lc.Periodic() to 'constraints'")
+            raise ValueError(
+                "'q0' and 'qdot0' are required (a fixed start), or add lc.Periodic() to 'constraints'"
+            )
         if any(isinstance(c, AbstractInitialConstraint) for c in constraints):
-            raise ValueError("'constraints': initial conditions (lc.InitialRest, ...) need a free start (lc.Periodic)")
+            raise ValueError(
+                "'constraints': initial conditions (lc.InitialRest, ...) need a free start (lc.Periodic)"
+            )
         q0 = check_array("q0", q0, (d,), context).astype(float)
         qdot0 = check_array("qdot0", qdot0, (d,), context).astype(float)
     if bounds is None:
-        bounds = Bounds(jnp.full(d, -jnp.inf), jnp.full(d, jnp.inf), jnp.full(m, -jnp.inf), jnp.full(m, jnp.inf))
+        bounds = Bounds(
+            jnp.full(d, -jnp.inf), jnp.full(d, jnp.inf), jnp.full(m, -jnp.inf), jnp.full(m, jnp.inf)
+        )
     bounds = _check_bounds(bounds, d, m, context)
     controls = SampledControls(t_final, n_steps, np.ones(m)) if controls is None else controls
     _check_controls(controls, system, n_steps, t_final)
     objective_weight = jnp.asarray(check_scalar("objective_weight", objective_weight), float)
-    if is_concrete(objective_weight) and not (np.isfinite(float(objective_weight)) and float(objective_weight) >= 0):
+    if is_concrete(objective_weight) and not (
+        np.isfinite(float(objective_weight)) and float(objective_weight) >= 0
+    ):
         raise ValueError(f"'objective_weight' must be non-negative and finite, got {float(objective_weight)}")
     task = Task(
         name=name,
@@ -248,8 +256,20 @@ def _check_values(task: Task) -> None:
 
 def rebuild(task: Task, **changes) -> Task:
     """``task`` with some pieces changed, checked as :func:`make_task` checks them."""
-    allowed = {"integrator", "system", "n_steps", "t_final", "checkpoint", "goal", "bounds", "objective",
-               "constraints", "guess", "controls", "name"}
+    allowed = {
+        "integrator",
+        "system",
+        "n_steps",
+        "t_final",
+        "checkpoint",
+        "goal",
+        "bounds",
+        "objective",
+        "constraints",
+        "guess",
+        "controls",
+        "name",
+    }
     unknown = set(changes) - allowed
     if unknown:
         raise TypeError(f"with_options: unknown options {sorted(unknown)}; allowed: {sorted(allowed)}")
@@ -270,7 +290,9 @@ def rebuild(task: Task, **changes) -> Task:
     t_final = changes.pop("t_final", task.t_final)
     controls = changes.pop("controls", task.parameterization)
     if isinstance(controls, SampledControls) and (n_steps != controls.n_steps or t_final is not task.t_final):
-        controls = SampledControls(t_final, check_positive_int("n_steps", n_steps), controls.scale, t0=controls.t0)
+        controls = SampledControls(
+            t_final, check_positive_int("n_steps", n_steps), controls.scale, t0=controls.t0
+        )
     return make_task(
         changes.pop("system", task.system),
         t_final=t_final,

@@ -51,8 +51,16 @@ def _start(task: Task, params, z: Array) -> tuple[Array, Array]:
 def _one_cycle(task: Task, params, z: Array):
     q0, qdot0 = _start(task, params, z)
     traj = simulate(
-        task.system, q0, qdot0, task.controls(params), t_final=task.t_final, n_steps=task.n_steps,
-        integrator=task.integrator, save="final", check_constraints=False, divergence=None,
+        task.system,
+        q0,
+        qdot0,
+        task.controls(params),
+        t_final=task.t_final,
+        n_steps=task.n_steps,
+        integrator=task.integrator,
+        save="final",
+        check_constraints=False,
+        divergence=None,
     )
     q, qdot = traj.q.reshape(-1, q0.shape[0])[-1], traj.qdot.reshape(-1, q0.shape[0])[-1]
     return reduced_state(task, q, qdot), q[:3]
@@ -154,7 +162,9 @@ def replay_gait(task: Task, params, *, cycles: int = 3, rtol: float = 1e-11, ato
         ValueError: a task that is not periodic; ``cycles`` not a positive integer.
     """
     if task.periodic is None:
-        raise ValueError(f"replay_gait needs a periodic task (lc.drive_gait(), lc.make_gait(...)), got {task.name!r}")
+        raise ValueError(
+            f"replay_gait needs a periodic task (lc.drive_gait(), lc.make_gait(...)), got {task.name!r}"
+        )
     if isinstance(cycles, bool) or not isinstance(cycles, (int, np.integer)) or cycles < 1:
         raise ValueError(f"'cycles' must be a positive integer, got {cycles!r}")
     cycles = int(cycles)

@@ -31,8 +31,8 @@ from ._build import make_task
 from ._constraints import AbstractConstraint, Bounds, InitialRest, NetDisplacement, Periodic
 from ._parameterizations import SampledControls
 from ._task import Guess, Task
-from ._terms import AbstractTerm, Displacement, Effort, Rotation
 from ._tasks import car_effort_scale
+from ._terms import AbstractTerm, Displacement, Effort, Rotation
 
 __all__ = ["make_gait", "drive_gait", "turn_gait", "sideways_gait"]
 

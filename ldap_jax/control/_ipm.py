@@ -35,7 +35,16 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-from ._kkt import Derivatives, OCPFunctions, constraints, derivatives, dual_residuals, objective, rollout, theta
+from ._kkt import (
+    Derivatives,
+    OCPFunctions,
+    constraints,
+    derivatives,
+    dual_residuals,
+    objective,
+    rollout,
+    theta,
+)
 from ._riccati import QPMatrices, QPSolution, QPVector, riccati_apply, riccati_factor
 
 __all__ = ["SOLVER_RESULTS", "IPMOptions", "IPMState", "ipm_solve", "pushed", "MAX_RESETS"]
@@ -116,7 +125,9 @@ class _Bounds(NamedTuple):
 
     def log_barrier(self, chi: Array) -> Array:
         sl, su = self.slacks(chi)
-        return jnp.sum(jnp.where(self.has_lo, jnp.log(sl), 0.0)) + jnp.sum(jnp.where(self.has_hi, jnp.log(su), 0.0))
+        return jnp.sum(jnp.where(self.has_lo, jnp.log(sl), 0.0)) + jnp.sum(
+            jnp.where(self.has_hi, jnp.log(su), 0.0)
+        )
 
 
 def pushed(x: Array, lo: Array, hi: Array, push: float) -> Array:
@@ -124,8 +135,12 @@ def pushed(x: Array, lo: Array, hi: Array, push: float) -> Array:
     each finite bound, and at most half of ``push`` times the width of a two-sided interval."""
     has_lo, has_hi = jnp.isfinite(lo), jnp.isfinite(hi)
     width = jnp.where(has_lo & has_hi, hi - lo, jnp.inf)
-    lo_in = jnp.where(has_lo, lo + jnp.minimum(push * jnp.maximum(1.0, jnp.abs(lo)), 0.5 * push * width), -jnp.inf)
-    hi_in = jnp.where(has_hi, hi - jnp.minimum(push * jnp.maximum(1.0, jnp.abs(hi)), 0.5 * push * width), jnp.inf)
+    lo_in = jnp.where(
+        has_lo, lo + jnp.minimum(push * jnp.maximum(1.0, jnp.abs(lo)), 0.5 * push * width), -jnp.inf
+    )
+    hi_in = jnp.where(
+        has_hi, hi - jnp.minimum(push * jnp.maximum(1.0, jnp.abs(hi)), 0.5 * push * width), jnp.inf
+    )
     return jnp.minimum(jnp.maximum(x, lo_in), hi_in)
 
 
@@ -133,7 +148,10 @@ def _kkt_parts(st: IPMState, d: Derivatives, b: _Bounds):
     """Dual infeasibility (scaled), constraint violation (max norms), slacks and the
     complementarity scaling of IPOPT's KKT error."""
     gp, gc, gv = dual_residuals(d, st.y, st.nu, st.zl, st.zu)
-    dual = jnp.maximum(jnp.max(jnp.abs(gc)), jnp.maximum(jnp.max(jnp.abs(gv), initial=0.0), jnp.max(jnp.abs(gp), initial=0.0)))
+    dual = jnp.maximum(
+        jnp.max(jnp.abs(gc)),
+        jnp.maximum(jnp.max(jnp.abs(gv), initial=0.0), jnp.max(jnp.abs(gp), initial=0.0)),
+    )
     primal = jnp.maximum(jnp.max(jnp.abs(d.defects)), jnp.max(jnp.abs(d.cK), initial=0.0))
     sl = jnp.where(b.has_lo, st.chi - b.lo, 0.0)
     su = jnp.where(b.has_hi, b.hi - st.chi, 0.0)
@@ -193,7 +211,9 @@ def _barrier_parameter(st: IPMState, parts, b: _Bounds, options: IPMOptions, tol
     return jax.lax.while_loop(cond, lambda mu: jnp.maximum(tol / 10, jnp.minimum(0.2 * mu, mu**1.5)), st.mu)
 
 
-def _newton_step(st: IPMState, d: Derivatives, b: _Bounds, mu: Array, options: IPMOptions, tol: Array) -> _Step:
+def _newton_step(
+    st: IPMState, d: Derivatives, b: _Bounds, mu: Array, options: IPMOptions, tol: Array
+) -> _Step:
     """The regularised Newton step: the QP of :mod:`._riccati` with the barrier's curvature
     ``Sigma = zeta / slack``, factored with the smallest ``delta_w I`` that gives the right inertia."""
     K, n = st.chi.shape
@@ -234,7 +254,9 @@ def _newton_step(st: IPMState, d: Derivatives, b: _Bounds, mu: Array, options: I
 
     def reg_body(c):
         delta, _, tries = c
-        delta = jnp.where(tries == 0, zero, jnp.where(delta == 0, jnp.maximum(1e-4, st.delta_w / 3), 8.0 * delta))
+        delta = jnp.where(
+            tries == 0, zero, jnp.where(delta == 0, jnp.maximum(1e-4, st.delta_w / 3), 8.0 * delta)
+        )
         return delta, factor_with(delta), tries + 1
 
     empty = jax.tree_util.tree_map(lambda x: jnp.zeros(x.shape, x.dtype), jax.eval_shape(factor_with, zero))
@@ -294,7 +316,9 @@ def _line_search(fns, st: IPMState, d: Derivatives, b: _Bounds, step: _Step, opt
         return alpha, k + 1, ok, f_type
 
     false = jnp.zeros((), bool)
-    alpha, _, ok, f_type = jax.lax.while_loop(ls_cond, ls_body, (a_max, jnp.zeros((), jnp.int32), false, false))
+    alpha, _, ok, f_type = jax.lax.while_loop(
+        ls_cond, ls_body, (a_max, jnp.zeros((), jnp.int32), false, false)
+    )
     entry = jnp.stack([(1 - 1e-5) * theta0, phi0 - 1e-8 * theta0])
     filt = jnp.where(ok & ~f_type, jnp.concatenate([entry[None], filt[:-1]]), filt)
     return jnp.where(ok, alpha, 0.0), ok, theta0 <= theta_min, filt, theta_max
@@ -342,7 +366,9 @@ def _next_point(fns, st: IPMState, b: _Bounds, step: _Step, alpha, ok, feasible,
     return p, chi, v, hold, reset
 
 
-def _iterate(fns, st: IPMState, d: Derivatives, parts, b: _Bounds, options: IPMOptions, tol: Array) -> IPMState:
+def _iterate(
+    fns, st: IPMState, d: Derivatives, parts, b: _Bounds, options: IPMOptions, tol: Array
+) -> IPMState:
     """One interior-point iteration from ``st`` with its derivatives ``d``."""
     mu = _barrier_parameter(st, parts, b, options, tol)
     step = _newton_step(st, d, b, mu, options, tol)
@@ -411,7 +437,9 @@ def _failure(st: IPMState, feasible: Array) -> SOLVER_RESULTS:
     )
 
 
-def initial_state(fns: OCPFunctions, p: Array, chi: Array, v: Array, b: _Bounds, options: IPMOptions) -> IPMState:
+def initial_state(
+    fns: OCPFunctions, p: Array, chi: Array, v: Array, b: _Bounds, options: IPMOptions
+) -> IPMState:
     K, n = chi.shape
     dtype = chi.dtype
     chi = pushed(chi, b.lo, b.hi, options.bound_push)

@@ -144,7 +144,9 @@ def _stage_hessians(fns: OCPFunctions, chi: Array, v: Array, y: Array, curved: b
     return jnp.zeros((K1, n + m, n + m), H.dtype).at[:, idx[:, None], idx[None, :]].set(H)
 
 
-def derivatives(fns: OCPFunctions, p: Array, chi: Array, v: Array, y: Array, nu: Array, exact_tol) -> Derivatives:
+def derivatives(
+    fns: OCPFunctions, p: Array, chi: Array, v: Array, y: Array, nu: Array, exact_tol
+) -> Derivatives:
     """The constraints and the derivatives of one iteration. The dynamics' curvature enters ``W``
     and ``W_p`` (and the terminal constraints' ``QK``) once the constraint violation
     ``theta = |defects|_1 + |c_K|_1``, from this same evaluation of the dynamics, is at most

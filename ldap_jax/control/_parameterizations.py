@@ -86,7 +86,6 @@ class SampledControls(AbstractParameterization):
             coef = amplitude * jax.random.normal(key, (n_modes, n))
         return modes @ coef
 
-
     def _periodic_init(self, key, amplitude, n_modes, s):
         n = self.scale.shape[0]
         j = jnp.arange(1, n_modes + 1, dtype=s.dtype)

@@ -81,7 +81,11 @@ def _optimum_jvp(primals, tangents):
         return grads, defects, cK
 
     _, ((r_p, r_chi, r_v), e, c) = jax.jvp(residuals, (diff,), (t_diff,))
-    dp, dchi, dv = _ift_step(task, st, QPVector(wp=r_p, e0=e[0], w=jnp.concatenate([r_chi[:-1], r_v], axis=1), e=e[1:], qK=r_chi[-1], c=c))
+    dp, dchi, dv = _ift_step(
+        task,
+        st,
+        QPVector(wp=r_p, e0=e[0], w=jnp.concatenate([r_chi[:-1], r_v], axis=1), e=e[1:], qK=r_chi[-1], c=c),
+    )
 
     def cost(chi_, v_, diff_):
         _, fns_, _, _, _ = _setup(eqx.combine(diff_, static))

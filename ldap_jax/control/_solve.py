@@ -153,7 +153,9 @@ def solve(
         st, violation, cost = _run_batch(_stopped(task), _stopped(params0), options)
         st, violation, n_ok = _best(st, violation, cost)
         sol = _finish(task, st, violation)
-        return dataclasses.replace(sol, starts=int(jax.tree_util.tree_leaves(params0)[0].shape[0]), starts_converged=n_ok)
+        return dataclasses.replace(
+            sol, starts=int(jax.tree_util.tree_leaves(params0)[0].shape[0]), starts_converged=n_ok
+        )
     st, violation, _ = _run(_stopped(task), _stopped(params0), options)
     return _finish(task, st, violation)
 
@@ -200,14 +202,18 @@ def _check_guess(task: Task, params0):
     periodic = task.periodic is not None
     controls = params0.controls if periodic and hasattr(params0, "controls") else params0
     if periodic and not hasattr(params0, "state"):
-        raise TypeError(f"'params0' of a periodic task must be lc.GaitParams(controls, state), got {type(params0)}")
+        raise TypeError(
+            f"'params0' of a periodic task must be lc.GaitParams(controls, state), got {type(params0)}"
+        )
     try:
         cshape = tuple(jnp.shape(controls))
     except TypeError as err:
         raise TypeError(f"'params0' must be an array of numbers, got {type(controls)}") from err
     batched = len(cshape) == 3 and cshape[1:] == shape
     if cshape[-2:] != shape or len(cshape) not in (2, 3):
-        raise ValueError(f"'params0' must have shape {shape} (N + 1 nodes, channels), or a batch of them, got {cshape}")
+        raise ValueError(
+            f"'params0' must have shape {shape} (N + 1 nodes, channels), or a batch of them, got {cshape}"
+        )
     params0 = jax.tree_util.tree_map(lambda x: jnp.asarray(x, task.bounds.q_lower.dtype), params0)
     with jax.ensure_compile_time_eval():
         leaves = jax.tree_util.tree_leaves(params0)
@@ -225,7 +231,9 @@ def _solver_view(task: Task) -> Task:
     penalty form's weight and memory policy, and its guess settings. They are static (part of a
     compiled program's key), so without this two tasks that differ only there compiled the
     interior-point program twice."""
-    return dataclasses.replace(task, name="", guess=Guess(), checkpoint=False, objective_weight=jnp.ones_like(task.objective_weight))
+    return dataclasses.replace(
+        task, name="", guess=Guess(), checkpoint=False, objective_weight=jnp.ones_like(task.objective_weight)
+    )
 
 
 def valid_task(task: Task) -> Array:

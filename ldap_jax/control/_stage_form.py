@@ -83,7 +83,9 @@ def layout(task, dyn: DiscreteDynamics) -> Layout:
         z = jnp.zeros(task.system.n_config)
         obs, c = Node(z, z), jnp.zeros(task.system.n_controls)
         for con in task.path_constraints:
-            n_path += jax.eval_shape(lambda con=con: con.residual(task.system, jnp.zeros(()), obs, c)).shape[0]
+            n_path += jax.eval_shape(lambda con=con: con.residual(task.system, jnp.zeros(()), obs, c)).shape[
+                0
+            ]
     periodic = task.periodic is not None
     reduced = _reduced_indices(task, dyn) if periodic else ()
     return Layout(dyn.n_state, task.system.n_controls, n_path, reduced, periodic)
@@ -165,13 +167,20 @@ def problem_functions(task, dyn: DiscreteDynamics, *, curvature: DiscreteDynamic
         c = u * scale
         obs = parts.node(x, c)
         q0 = parts.q0(chi)
-        return sum((t.stage(system, obs, c, h) + t.terminal(system, obs, q0) for t in objective), jnp.zeros((), chi.dtype))
+        return sum(
+            (t.stage(system, obs, c, h) + t.terminal(system, obs, q0) for t in objective),
+            jnp.zeros((), chi.dtype),
+        )
 
     def terminal(chi):
         x, u, _, z, u0 = lay.split(chi)
         obs = parts.node(x, u * scale)
         q0 = parts.q0(chi)
-        out = [con.residual(system, obs, q0) for con in task.constraints if isinstance(con, AbstractTerminalConstraint)]
+        out = [
+            con.residual(system, obs, q0)
+            for con in task.constraints
+            if isinstance(con, AbstractTerminalConstraint)
+        ]
         if lay.periodic:
             out += [x[jnp.asarray(lay.reduced, int)] - z, u - u0]
             start = parts.node(parts.start(z), u0 * scale)
@@ -190,7 +199,9 @@ def problem_functions(task, dyn: DiscreteDynamics, *, curvature: DiscreteDynamic
         half = jnp.where(jnp.isfinite(v_hi - v_lo), 0.5 * (v_hi - v_lo), 1.0)
         k1, k2 = jax.random.split(key)
         u0 = p[p.shape[0] - lay.m :]
-        u0 = pushed(u0 + size * half * jax.random.uniform(k1, u0.shape, u0.dtype, -1.0, 1.0), v_lo, v_hi, 1e-2)
+        u0 = pushed(
+            u0 + size * half * jax.random.uniform(k1, u0.shape, u0.dtype, -1.0, 1.0), v_lo, v_hi, 1e-2
+        )
         noise = jax.random.uniform(k2, v.shape, v.dtype, -1.0, 1.0)
         v = pushed(v + size * half[None] * noise, v_lo[None], v_hi[None], 1e-2)
         return p.at[p.shape[0] - lay.m :].set(u0), v

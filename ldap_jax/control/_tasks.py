@@ -27,7 +27,9 @@ def car_effort_scale(car: Car) -> np.ndarray:
     return np.asarray([float(car.I + car.m * car.rho**2), 0.5])
 
 
-def _car_to_rest(name, car, *, q0, goal, y_bound, weights, t_final, n_steps, integrator, max_steer, checkpoint, amplitude):
+def _car_to_rest(
+    name, car, *, q0, goal, y_bound, weights, t_final, n_steps, integrator, max_steer, checkpoint, amplitude
+):
     """The car tasks: from rest at ``q0`` to rest at the pose ``goal``, least effort,
     ``|y| <= y_bound`` and ``|sigma| <= max_steer`` at the nodes."""
     scale = car_effort_scale(car)
