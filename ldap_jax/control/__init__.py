@@ -48,6 +48,8 @@ from ._solve import Solution as Solution
 from ._solve import curvature_integrator as curvature_integrator
 from ._solve import solve as solve
 from ._task import GaitParams as GaitParams
+from ._tracker import GaitTracker as GaitTracker
+from ._tracker import gait_tracker as gait_tracker
 from ._task import Guess as Guess
 from ._task import Task as Task
 from ._tasks import forward_gait as forward_gait

@@ -199,6 +199,7 @@ def sideways_gait(
     n_steps: int = 100,
     max_torque: Any = 0.4,
     max_steer: Any = 1.0,
+    starts: int = 4,
     integrator: AbstractIntegrator | None = None,
 ) -> Task:
     """The car's sideways gait: a net shift of ``shift`` (m, default 0.05) to the left per cycle
@@ -211,6 +212,9 @@ def sideways_gait(
             per period (default 100).
         max_torque: bound of the wheel torque (N m, default 0.4; or ``(lo, hi)``).
         max_steer: bound of ``sigma`` (default 1; or ``(lo, hi)``).
+        starts: random periodic guesses run as a batch (default 4). The problem has at least two
+            local optima: one smooth guess converged to an effort of 160.2256, 15 of 16 random
+            ones to 62.4809 (IPOPT's best of 5 on the same formulation: 62.4809).
         integrator: default ``lj.RDP(order=4)``.
     """
     car = system if system is not None else Car()
@@ -225,6 +229,6 @@ def sideways_gait(
         bounds=Bounds.of(car, q={"sigma": max_steer}, u={"f_psi": max_torque}),
         scale=scale,
         integrator=integrator,
-        guess=Guess(amplitude=0.3),
+        guess=Guess(amplitude=0.3, starts=check_positive_int("starts", starts)),
         name="sideways_gait",
     )

@@ -1,0 +1,169 @@
+"""Feedback that holds a gait: a periodic time-varying LQR on the cycle.
+
+A gait's Floquet multipliers sit at 1 (:mod:`._gait_analysis`): executed open loop under any model
+error, it drifts, and its displacement per cycle with it. :func:`gait_tracker` linearises the
+task's discrete dynamics along the optimised cycle, in the gait's reduced state
+``z = (r, v)`` (non-cyclic shape, minimal velocities; the group and the cyclic coordinates do not
+enter the dynamics), with a control correction ``du`` held over each step::
+
+    dz_{k+1} = A_k dz_k + B_k du_k,
+
+and solves the periodic discrete Riccati equation by sweeping the backward recursion
+``P_k = Q + A_k^T P_{k+1} (A_k - B_k K_k)``, ``K_k = (R + B_k^T P_{k+1} B_k)^-1 B_k^T P_{k+1} A_k``
+over several periods until ``P_0`` repeats. The policy is
+``u(t) = clip(u_ff(t) + K_k (z_ref(t) - z), u_lower, u_upper)`` with ``k`` the step containing
+``t mod T`` and ``z_ref`` the cycle's reduced state interpolated between the nodes.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from .._discrete import discretize
+from .._policy import AbstractPolicy
+from ._gait_analysis import _keep, reduced_state
+from ._task import Task
+
+__all__ = ["GaitTracker", "gait_tracker"]
+
+
+class GaitTracker(AbstractPolicy):
+    """The periodic LQR policy of :func:`gait_tracker` (an ``lj`` policy: pass it as the controls
+    of :func:`ldap_jax.simulate`).
+
+    Attributes:
+        feedforward: the gait's periodic controls.
+        z_ref: the cycle's reduced state at the nodes, (N + 1, n_z).
+        gains: the feedback gains of the steps, (N, n_channels, n_z).
+        period: T (s). u_lower, u_upper: the saturation (the task's control bounds).
+        keep: indices in ``q`` of the non-cyclic shape coordinates.
+    """
+
+    feedforward: AbstractPolicy | object
+    z_ref: Float[Array, "K nz"]
+    gains: Float[Array, "N m nz"]
+    period: Array
+    u_lower: Array
+    u_upper: Array
+    system: object
+    keep: tuple[int, ...] = eqx.field(static=True)
+
+    @property
+    def n_channels(self) -> int:
+        return self.gains.shape[1]
+
+    def __call__(self, t, q, qdot):
+        n = self.gains.shape[0]
+        s = t - self.period * jnp.floor(t / self.period)
+        x = s / self.period * n
+        k = jnp.clip(jnp.floor(x).astype(jnp.int32), 0, n - 1)
+        w = x - k
+        z_ref = (1 - w) * self.z_ref[k] + w * self.z_ref[k + 1]
+        v = self.system.velocities_from_qdot(q, qdot)
+        z = jnp.concatenate([q[jnp.asarray(self.keep, int)], v])
+        u = self.feedforward(t) + self.gains[k] @ (z_ref - z)
+        return jnp.clip(u, self.u_lower, self.u_upper)
+
+
+def _linearised_steps(task: Task, params):
+    """``(z_nodes, A, B)``: the cycle's reduced states and the Jacobians of each step's map."""
+    dyn = discretize(task.system, task.integrator, h=task.h)
+    controls = task.parameterization.values(params.controls)  # (N + 1, m) physical controls
+    keep = _keep(task)
+    system = task.system
+
+    def start(z, c):
+        q = jnp.zeros((system.n_config,), z.dtype).at[keep].set(z[: keep.size])
+        return q, system.qdot_from_velocities(q, z[keep.size :], c)
+
+    def step(z, du, k):
+        c0, c1 = controls[k] + du, controls[k + 1] + du
+        q, qdot = start(z, c0)
+        x1 = dyn.step(dyn.init(q, qdot, c0), c0, c1, k)
+        q1, qdot1 = dyn.node(x1, c1)
+        return reduced_state(task, q1, qdot1)
+
+    q0, qdot0 = task.initial_state(params)
+    traj = task.rollout(params)
+    z_nodes = jax.vmap(lambda q, qd: reduced_state(task, q, qd))(traj.q, traj.qdot)
+    del q0, qdot0
+    ks = jnp.arange(task.n_steps)
+    m = controls.shape[1]
+    A = jax.vmap(lambda z, k: jax.jacfwd(step, argnums=0)(z, jnp.zeros((m,), z.dtype), k))(z_nodes[:-1], ks)
+    B = jax.vmap(lambda z, k: jax.jacfwd(step, argnums=1)(z, jnp.zeros((m,), z.dtype), k))(z_nodes[:-1], ks)
+    return z_nodes, A, B
+
+
+def periodic_lqr(A: Array, B: Array, Q: Array, R: Array, sweeps: int = 20) -> tuple[Array, Array]:
+    """Gains ``K_k`` (N, m, n) and ``P_0`` of the periodic discrete Riccati equation, by ``sweeps``
+    periods of the backward recursion from ``P_N = Q``."""
+
+    def backward(P, AB):
+        Ak, Bk = AB
+        S = R + Bk.T @ P @ Bk
+        K = jnp.linalg.solve(S, Bk.T @ P @ Ak)
+        P_new = Q + Ak.T @ P @ (Ak - Bk @ K)
+        return 0.5 * (P_new + P_new.T), K
+
+    def sweep(P, _):
+        P0, K = jax.lax.scan(backward, P, (A, B), reverse=True)
+        return P0, K
+
+    P0, Ks = jax.lax.scan(sweep, Q, None, length=sweeps)
+    return Ks[-1], P0
+
+
+@eqx.filter_jit
+def _tracker(task: Task, params, q_weight, r_weight, sweeps: int):
+    z_nodes, A, B = _linearised_steps(task, params)
+    nz, m = A.shape[1], B.shape[2]
+    scale = task.parameterization.scale
+    Q = q_weight * jnp.eye(nz, dtype=A.dtype)
+    R = r_weight * jnp.diag(1.0 / scale**2)
+    K, _ = periodic_lqr(A, B, Q, R, sweeps)
+    return z_nodes, K
+
+
+def gait_tracker(
+    task: Task, solution, *, q_weight: float = 1.0, r_weight: float = 1e-3, sweeps: int = 20
+) -> GaitTracker:
+    """A periodic time-varying LQR that holds ``task``'s optimised gait against model error.
+
+    Args:
+        task: a periodic task (``lc.drive_gait()``, ...).
+        solution: its :class:`~ldap_jax.control.Solution` (or the :class:`GaitParams` themselves).
+        q_weight: weight of the reduced-state error (``Q = q_weight I``, natural units; default 1).
+        r_weight: weight of the control correction (``R = r_weight diag(1 / scale^2)``: a
+            correction of the controls' scale costs ``r_weight``; default 1e-3: with the drive gait
+            under a 5 % mass error, 1e-2 kept the displacement per cycle within 4.5 % of nominal,
+            1e-3 within 3.5 %, the open loop 6.7 % off).
+        sweeps: periods of the backward Riccati recursion (default 20).
+
+    Returns:
+        :class:`GaitTracker`, an ``lj`` policy over any number of cycles:
+        ``lj.simulate(system, q0, qdot0, tracker, t_final=cycles * T, ...)``.
+
+    Raises:
+        ValueError: a task that is not periodic.
+    """
+    if task.periodic is None:
+        raise ValueError(
+            f"gait_tracker needs a periodic task (lc.drive_gait(), lc.make_gait(...)), got {task.name!r}"
+        )
+    params = getattr(solution, "params", solution)
+    z_nodes, K = _tracker(task, params, jnp.asarray(q_weight), jnp.asarray(r_weight), int(sweeps))
+    b = task.bounds
+    return GaitTracker(
+        feedforward=task.controls(params),
+        z_ref=z_nodes,
+        gains=K,
+        period=jnp.asarray(task.t_final),
+        u_lower=jnp.asarray(b.u_lower),
+        u_upper=jnp.asarray(b.u_upper),
+        system=task.system,
+        keep=tuple(int(i) for i in np.asarray(_keep(task))),
+    )
