@@ -48,8 +48,6 @@ from ._solve import Solution as Solution
 from ._solve import curvature_integrator as curvature_integrator
 from ._solve import solve as solve
 from ._task import GaitParams as GaitParams
-from ._tracker import GaitTracker as GaitTracker
-from ._tracker import gait_tracker as gait_tracker
 from ._task import Guess as Guess
 from ._task import Task as Task
 from ._tasks import forward_gait as forward_gait
@@ -67,6 +65,8 @@ from ._terms import displacement as displacement
 from ._terms import effort_cost as effort_cost
 from ._terms import pose_error as pose_error
 from ._terms import wrap_angle as wrap_angle
+from ._tracker import GaitTracker as GaitTracker
+from ._tracker import gait_tracker as gait_tracker
 
 TASKS = {
     ("car", "parallel_park"): parallel_park,

@@ -87,10 +87,8 @@ def _linearised_steps(task: Task, params):
         q1, qdot1 = dyn.node(x1, c1)
         return reduced_state(task, q1, qdot1)
 
-    q0, qdot0 = task.initial_state(params)
     traj = task.rollout(params)
     z_nodes = jax.vmap(lambda q, qd: reduced_state(task, q, qd))(traj.q, traj.qdot)
-    del q0, qdot0
     ks = jnp.arange(task.n_steps)
     m = controls.shape[1]
     A = jax.vmap(lambda z, k: jax.jacfwd(step, argnums=0)(z, jnp.zeros((m,), z.dtype), k))(z_nodes[:-1], ks)
@@ -120,7 +118,7 @@ def periodic_lqr(A: Array, B: Array, Q: Array, R: Array, sweeps: int = 20) -> tu
 @eqx.filter_jit
 def _tracker(task: Task, params, q_weight, r_weight, sweeps: int):
     z_nodes, A, B = _linearised_steps(task, params)
-    nz, m = A.shape[1], B.shape[2]
+    nz = A.shape[1]
     scale = task.parameterization.scale
     Q = q_weight * jnp.eye(nz, dtype=A.dtype)
     R = r_weight * jnp.diag(1.0 / scale**2)
