@@ -369,6 +369,58 @@ def gait(name: str, cfg: Config, log, cycles: int = 10) -> dict:
     return {"ours": row, "ipopt": ipopt}
 
 
+def family(cfg: Config, log, n: int = 32) -> dict:
+    """A family of ``n`` drive gaits over the torque bound (0.05 to 0.15 N m), one ``jax.vmap`` of
+    ``lc.solve`` warm-started from the default gait; its time against one solve; the trade-off
+    figure (``OUT/gait_family.png``)."""
+    import equinox as eqx
+
+    from ldap_jax.plotting import plot_gait_family
+
+    task = lc.drive_gait()
+    base = lc.solve(task)
+    bounds = jnp.linspace(0.05, 0.15, n)
+    ones = jnp.ones_like(task.bounds.u_upper)
+
+    def member(b):
+        t = eqx.tree_at(lambda t: (t.bounds.u_lower, t.bounds.u_upper), task, (-b * ones, b * ones))
+        sol = lc.solve(t, base.params)
+        values = t.parameterization.values(sol.params.controls)
+        effort = lc.effort_cost(values, t.h, t.parameterization.scale)
+        return sol, effort
+
+    run = jax.jit(jax.vmap(member))
+    _, first, repeat = _time(lambda: run(bounds), cfg.repeats)
+    sols, effort = run(bounds)
+    _, _, single = _time(lambda: lc.solve(task, base.params), cfg.repeats)
+    conv = np.asarray(sols.converged)
+    dist = -np.asarray(sols.cost)
+    fig = plot_gait_family(
+        np.asarray(bounds),
+        dist,
+        np.asarray(effort),
+        converged=conv,
+        title=f"{n} drive gaits of the snakeboard over the torque bound (one vmapped lc.solve)",
+    )
+    fig.savefig(pathlib.Path(cfg.out) / "gait_family.png", dpi=110)
+    row = dict(
+        members=n,
+        converged=int(conv.sum()),
+        first_call_s=first,
+        repeat_s=repeat,
+        single_repeat_s=single,
+        ratio=repeat / single,
+        max_iterations=int(np.max(np.asarray(sols.iterations))),
+        displacement=dist.tolist(),
+        bounds=np.asarray(bounds).tolist(),
+    )
+    log(
+        f"  family of {n}: {row['converged']} converged, repeat {repeat:.2f} s = {row['ratio']:.1f}x one "
+        f"warm solve ({single:.3f} s)"
+    )
+    return row
+
+
 def gait_markdown(gaits: dict) -> list[str]:
     lines = [
         "",
@@ -594,9 +646,19 @@ def main(argv=None) -> int:
         for name in args.gaits:
             log(name)
             res["gaits"][name] = gait(name, cfg, log)
+        if "drive_gait" in args.gaits:
+            log("gait family")
+            res["gait_family"] = family(cfg, log, n=8 if args.quick else 32)
     res["total_s"] = time.perf_counter() - t0
     (out / "bench_control.json").write_text(json.dumps(res, indent=1, default=str) + "\n")
     md = markdown(res) + ("\n".join(gait_markdown(res["gaits"])) + "\n" if "gaits" in res else "")
+    if "gait_family" in res:
+        f = res["gait_family"]
+        md += (
+            f"\nGait family: {f['members']} drive gaits over the torque bound in one vmapped solve, "
+            f"{f['converged']} converged, {f['repeat_s']:.2f} s = {f['ratio']:.1f}x one warm solve "
+            f"(figure: gait_family.png).\n"
+        )
     (out / "bench_control.md").write_text(md)
     print(md)
     log(f"wrote {out / 'bench_control.json'} and {out / 'bench_control.md'}")

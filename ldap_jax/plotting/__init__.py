@@ -10,7 +10,8 @@ every axis is labelled with units (SI: m, rad, s, J).
   row per system), :func:`plot_energy_error` (long-run ``|E - E0 - W|``).
 * Accuracy: :func:`plot_convergence` (error against step, reference slopes),
   :func:`plot_work_precision` (error against runtime).
-* Gaits: :func:`plot_shape_loop` (shape-space loop, momentum, path).
+* Gaits: :func:`plot_shape_loop` (shape-space loop, momentum, path), :func:`plot_gait_family`
+  (a family's trade-off curve and efficiency).
 * Animation: :func:`animate` (a GIF; in a notebook ``IPython.display.Image(filename=path)``).
 """
 
@@ -22,6 +23,7 @@ from ._convergence import plot_convergence as plot_convergence
 from ._convergence import plot_work_precision as plot_work_precision
 from ._diagnostics import plot_diagnostics as plot_diagnostics
 from ._diagnostics import plot_energy_error as plot_energy_error
+from ._family import plot_gait_family as plot_gait_family
 from ._paths import plot_paths as plot_paths
 from ._paths import plot_position_error as plot_position_error
 from ._shape import plot_shape_loop as plot_shape_loop
@@ -38,6 +40,7 @@ __all__ = [
     "Part",
     "plot_convergence",
     "plot_diagnostics",
+    "plot_gait_family",
     "plot_energy_error",
     "plot_paths",
     "plot_position_error",
