@@ -513,7 +513,8 @@ def test_curvature_tol_is_traced_and_reaches_the_same_optimum(small_park):
     assert not {"jit(_run)", "jit(_solve)"} & set(names), names
     assert bool(default.converged) and bool(early.converged)
     assert int(early.iterations) != int(default.iterations)  # the switch did act (19 and 65)
-    np.testing.assert_allclose(early.cost, default.cost, rtol=1e-12)
+    # two points within a KKT error of 1e-10 of the optimum: their costs agree to that order
+    np.testing.assert_allclose(early.cost, default.cost, rtol=1e-11)
     np.testing.assert_allclose(early.params, default.params, rtol=0, atol=1e-8)
 
 
@@ -619,7 +620,8 @@ def test_optimize_compiles_once_keeps_terms_and_stops(park40):
     res = lc.optimize(task.loss, p0, n_iterations=40, chunk=10)
     assert _optimize._run_chunk._cached._cache_size() - before == 1
     assert float(res.loss) <= float(res.losses[0]) / 100
-    assert set(res.aux) == {"effort", "pose", "rest", "bounds"} and res.aux["pose"].shape == (40,)
+    assert set(res.aux) == {"effort", "terminalpose", "terminalrest", "bounds"}
+    assert res.aux["terminalpose"].shape == (40,)
     np.testing.assert_allclose(
         sum(np.asarray(v)[3] for v in res.aux.values()), np.asarray(res.losses)[3], rtol=1e-12
     )

@@ -202,3 +202,21 @@ def test_user_path_constraint_keeps_the_car_off_a_disc():
     dist_ref = np.linalg.norm(rp["q_ref"][:, :2] - np.asarray(center), axis=1)
     assert np.min(dist_ref) >= r - 1e-6
     assert rp["final_position_error"] < 1e-6
+
+
+def test_infeasible_prescribed_displacement_is_reported(drive):
+    """A net rotation of 20 rad per cycle, far beyond what the torque bounds allow in one period
+    (the drive gait's own constraint with another target: the same compiled program): not
+    converged, with a result that names the cause, never a silent NaN passed off as an answer."""
+    task, sol = drive
+    (i,) = [k for k, c in enumerate(task.constraints) if isinstance(c, lc.NetDisplacement)]
+    far = eqx.tree_at(lambda t: t.constraints[i].target, task, jnp.array([20.0]))
+    bad = lc.solve(far, sol.params, max_iterations=300)
+    assert not bool(bad.converged)
+    assert bad.result in (
+        lc.SOLVER_RESULTS.infeasible,
+        lc.SOLVER_RESULTS.line_search_failed,
+        lc.SOLVER_RESULTS.max_iterations,
+    ), lc.SOLVER_RESULTS[bad.result]
+    assert float(bad.max_violation) > 1e-3
+    assert np.isfinite(float(bad.max_violation))

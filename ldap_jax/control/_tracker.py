@@ -61,7 +61,7 @@ class GaitTracker(AbstractPolicy):
         s = t - self.period * jnp.floor(t / self.period)
         x = s / self.period * n
         k = jnp.clip(jnp.floor(x).astype(jnp.int32), 0, n - 1)
-        w = x - k
+        w = x - k.astype(x.dtype)
         z_ref = (1 - w) * self.z_ref[k] + w * self.z_ref[k + 1]
         v = self.system.velocities_from_qdot(q, qdot)
         z = jnp.concatenate([q[jnp.asarray(self.keep, int)], v])
