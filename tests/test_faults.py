@@ -17,6 +17,7 @@ input traced), the eager ones to one eager program; ``reference`` likewise (3 sa
 from __future__ import annotations
 
 import ast
+import dataclasses
 import functools
 import os
 import subprocess
@@ -674,32 +675,32 @@ def _make_task(**kw):
     args = (
         dict(
             name="t",
-            system=CAR,
-            q0=np.zeros(5),
-            qdot0=np.zeros(5),
             t_final=1.0,
             n_steps=N,
-            parameterization=lc.SampledControls(1.0, N, np.ones(2)),
-            integrator=None,
+            q0=np.zeros(5),
+            qdot0=np.zeros(5),
+            controls=lc.SampledControls(1.0, N, np.ones(2)),
             objective=(lc.Effort(jnp.ones(2)),),
         )
         | kw
     )
-    pos = [
-        args.pop(k)
-        for k in ("name", "system", "q0", "qdot0", "t_final", "n_steps", "parameterization", "integrator")
-    ]
-    return lc.make_task(*pos, **args)
+    return lc.make_task(args.pop("system", CAR), **args)
+
+
+def _bounds(**kw):
+    b = lc.Bounds.of(CAR)
+    return dataclasses.replace(b, **{k: jnp.asarray(v, float) for k, v in kw.items()})
 
 
 TASK_RAISES = {
     "system": (lambda: _make_task(system="car"), TypeError, "'system'"),
-    "parameterization": (lambda: _make_task(parameterization="sampled"), TypeError, "'parameterization'"),
+    "controls": (lambda: _make_task(controls="sampled"), TypeError, "'controls'"),
     "integrator": (lambda: _make_task(integrator="rk4"), TypeError, "'integrator'"),
     "objective": (lambda: _make_task(objective=(3.0,)), TypeError, "'objective'"),
-    "penalty": (lambda: _make_task(penalty={"rest": 1.0}), TypeError, "'penalty'"),
+    "constraints": (lambda: _make_task(constraints=({"rest": 1.0},)), TypeError, "'constraints'"),
     "q0 shape": (lambda: _make_task(q0=np.zeros(4)), ValueError, "'q0'"),
     "q0 nan": (lambda: _make_task(q0=np.full(5, NAN)), ValueError, "'q0'"),
+    "q0 missing": (lambda: _make_task(q0=None), ValueError, "'q0'"),
     "qdot0 sliding": (lambda: _make_task(qdot0=np.asarray(SLIDE)), ValueError, "'qdot0'"),
     "n_steps 0": (lambda: _make_task(n_steps=0), ValueError, "'n_steps'"),
     "n_steps float": (lambda: _make_task(n_steps=2.5), TypeError, "'n_steps'"),
@@ -707,34 +708,56 @@ TASK_RAISES = {
     "t_final nan": (lambda: _make_task(t_final=NAN), ValueError, "'t_final'"),
     "t_final str": (lambda: _make_task(t_final="1"), TypeError, "'t_final'"),
     "channels": (
-        lambda: _make_task(parameterization=lc.SampledControls(1.0, N, np.ones(3))),
+        lambda: _make_task(controls=lc.SampledControls(1.0, N, np.ones(3))),
         ValueError,
-        "'parameterization'",
+        "'controls'",
     ),
-    "parameterization steps": (
-        lambda: _make_task(parameterization=lc.SampledControls(1.0, 2 * N, np.ones(2))),
+    "controls steps": (
+        lambda: _make_task(controls=lc.SampledControls(1.0, 2 * N, np.ones(2))),
         ValueError,
-        "'parameterization'",
+        "'controls'",
     ),
-    "bounds empty": (lambda: _make_task(q_lower=np.ones(5), q_upper=np.zeros(5)), ValueError, "'q_lower'"),
-    "bounds shape": (lambda: _make_task(q_lower=np.zeros(3)), ValueError, "'q_lower'"),
-    "c_max 0": (lambda: _make_task(c_max=[0.0, 1.0]), ValueError, "'c_max'"),
-    "q0 outside": (lambda: _make_task(q_lower=np.full(5, 1.0), q_upper=np.full(5, 2.0)), ValueError, "'q0'"),
-    "goal shape": (lambda: _make_task(goal=[1.0, 2.0]), ValueError, "'goal'"),
-    "goal nan": (lambda: _make_task(goal=[1.0, NAN, 0.0]), ValueError, "'goal'"),
+    "bounds empty": (
+        lambda: _make_task(bounds=_bounds(q_lower=np.ones(5), q_upper=np.zeros(5))),
+        ValueError,
+        "'bounds'",
+    ),
+    "bounds shape": (lambda: _make_task(bounds=_bounds(q_lower=np.zeros(3))), ValueError, "bounds.q_lower"),
+    "bounds by name": (lambda: lc.Bounds.of(CAR, q={"z": 1.0}), ValueError, "z"),
+    "q0 outside": (
+        lambda: _make_task(bounds=_bounds(q_lower=np.full(5, 1.0), q_upper=np.full(5, 2.0))),
+        ValueError,
+        "'q0'",
+    ),
+    "goal shape": (lambda: _make_task(constraints=(lc.TerminalPose([1.0, 2.0]),)), ValueError, "'goal'"),
+    "goal nan": (lambda: _make_task(constraints=(lc.TerminalPose([1.0, NAN, 0.0]),)), ValueError, "'goal'"),
     "goal outside": (
-        lambda: _make_task(goal=[5.0, 0.0, 0.0], q_lower=np.full(5, -1.0), q_upper=np.full(5, 1.0)),
+        lambda: _make_task(
+            constraints=(lc.TerminalPose([5.0, 0.0, 0.0]),),
+            bounds=_bounds(q_lower=np.full(5, -1.0), q_upper=np.full(5, 1.0)),
+        ),
         ValueError,
         "'goal'",
     ),
-    "rest range": (lambda: _make_task(rest=(3,)), ValueError, "'rest'"),
-    "rest int": (lambda: _make_task(rest=0), TypeError, "'rest'"),
+    "initial without periodic": (
+        lambda: _make_task(constraints=(lc.InitialRest((0,)),)),
+        ValueError,
+        "'constraints'",
+    ),
     "objective_weight": (lambda: _make_task(objective_weight=-1.0), ValueError, "'objective_weight'"),
     "checkpoint": (lambda: _make_task(checkpoint="often"), ValueError, "'checkpoint'"),
-    "init_amplitude": (lambda: _make_task(init_amplitude=0.0), ValueError, "'init_amplitude'"),
+    "gait period": (lambda: lc.drive_gait(period=0.0), ValueError, "'period'"),
+    "gait n_steps": (lambda: lc.drive_gait(n_steps=1), ValueError, "'n_steps'"),
+    "gait start given": (
+        lambda: lc.make_task(
+            SB, t_final=1.0, n_steps=N, q0=np.zeros(5), qdot0=np.zeros(5), constraints=(lc.Periodic(),)
+        ),
+        ValueError,
+        "'q0'",
+    ),
     "parallel_park t_final": (lambda: lc.parallel_park(t_final=-1.0), ValueError, "'t_final'"),
     "parallel_park n_steps": (lambda: lc.parallel_park(n_steps=0), ValueError, "'n_steps'"),
-    "u_turn width": (lambda: lc.u_turn(width=-1.0), ValueError, "'q_lower'"),
+    "u_turn width": (lambda: lc.u_turn(width=-1.0), ValueError, "'y'.*lower < upper"),
     "reach goal": (lambda: lc.reach(goal=(1.0, 2.0, NAN)), ValueError, "'goal'"),
     "with_options n_steps": (lambda: PARK.with_options(n_steps=0), ValueError, "'n_steps'"),
     "with_options integrator": (lambda: PARK.with_options(integrator="rk4"), TypeError, "'integrator'"),
@@ -743,6 +766,7 @@ TASK_RAISES = {
     # lc.solve: input checks (before compiling)
     "solve task": (lambda: lc.solve("parallel_park"), TypeError, "'task'"),
     "solve gait": (lambda: lc.solve(GAIT), ValueError, "SampledControls"),
+    "solve barrier": (lambda: lc.solve(PARK, barrier=0.0), ValueError, "'barrier'"),
     "solve tol 0": (lambda: lc.solve(PARK, tol=0.0), ValueError, "'tol'"),
     "solve tol nan": (lambda: lc.solve(PARK, tol=NAN), ValueError, "'tol'"),
     "solve tol str": (lambda: lc.solve(PARK, tol="1e-8"), TypeError, "'tol'"),

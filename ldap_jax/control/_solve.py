@@ -206,6 +206,8 @@ def _check_guess(task: Task, params0):
             f"'params0' of a periodic task must be lc.GaitParams(controls, state), got {type(params0)}"
         )
     try:
+        if isinstance(controls, (str, bytes)):
+            raise TypeError
         cshape = tuple(jnp.shape(controls))
     except TypeError as err:
         raise TypeError(f"'params0' must be an array of numbers, got {type(controls)}") from err
