@@ -223,10 +223,10 @@ class Bounds(eqx.Module):
             penalty form: ``weight * h * (excess^2)`` summed over the nodes, controls scaled).
     """
 
-    q_lower: Float[Array, " d"]
-    q_upper: Float[Array, " d"]
-    u_lower: Float[Array, " n"]
-    u_upper: Float[Array, " n"]
+    q_lower: Float[Array, " d"] = eqx.field(converter=jnp.asarray)
+    q_upper: Float[Array, " d"] = eqx.field(converter=jnp.asarray)
+    u_lower: Float[Array, " n"] = eqx.field(converter=jnp.asarray)
+    u_upper: Float[Array, " n"] = eqx.field(converter=jnp.asarray)
     weight: Array = eqx.field(default=100.0, converter=jnp.asarray)
 
     @classmethod

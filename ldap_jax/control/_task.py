@@ -67,7 +67,9 @@ class Guess(eqx.Module):
     gait: SinusoidGait | None = None
     starts: int = eqx.field(static=True, default=1)
     seed: int = eqx.field(static=True, default=0)
-    controls: Array | None = None
+    controls: Array | None = eqx.field(
+        default=None, converter=lambda x: None if x is None else jnp.asarray(x)
+    )
 
 
 class Task(eqx.Module):

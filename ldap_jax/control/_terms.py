@@ -129,7 +129,7 @@ class Effort(AbstractTerm):
         weight: the term's weight (default 1).
     """
 
-    scale: Float[Array, " n"]
+    scale: Float[Array, " n"] = eqx.field(converter=jnp.asarray)
     weight: Array = eqx.field(default=1.0, converter=jnp.asarray)
 
     def interval(self, system, c0, c1, h):
