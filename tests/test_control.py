@@ -764,3 +764,22 @@ def test_bad_arguments():
         lc.parallel_park(n_steps=0)
     with pytest.raises(TypeError, match="optimizer"):
         lc.optimize(task.value, task.init(), n_iterations=3, optimizer="adam")
+
+
+def test_solve_flags_invalid_traced_parameters_and_nan_gradients_of_failures(small_park):
+    """Under vmap over the car's mass [1, -1, 0] (traced: no construction-time check), the solve
+    of each invalid member ends with invalid_input and converged=False, the valid one converges;
+    and the derivative of a solve that did not converge (max_iterations=1) is NaN, not a finite
+    number that looks like a sensitivity."""
+    task, p0 = small_park
+    masses = jnp.array([1.0, -1.0, 0.0])
+    batch = jax.vmap(lambda m: lc.solve(task.with_options(system=lj.Car(m=m)), p0))(masses)
+    assert np.asarray(batch.converged).tolist() == [True, False, False]
+    results = np.asarray(batch.result._value)
+    assert results[1] == results[2] == lc.SOLVER_RESULTS.invalid_input._value
+
+    def effort(m, iterations):
+        return lc.solve(task.with_options(system=lj.Car(m=m)), p0, max_iterations=iterations).cost
+
+    assert np.isnan(float(jax.grad(effort)(1.0, 1)))
+    assert np.isfinite(float(jax.grad(effort)(1.0, 1000)))
