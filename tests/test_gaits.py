@@ -1,7 +1,7 @@
 """Periodic gaits as hard-constrained limit cycles: the built-in gaits solved from their default
 guesses, periodicity and prescribed displacements on the model, the replay over several cycles
 on the reference, the cycle map's monodromy and Floquet analysis, sensitivities of the optimum
-by the implicit function theorem, the generic builder on another system, and bad input."""
+by the implicit function theorem, the tracker, a user path constraint, and bad input."""
 
 import equinox as eqx
 import jax
@@ -98,27 +98,6 @@ def test_drive_gait_sensitivities_match_finite_differences_of_resolves(drive):
         args[i] = x - eps
         down = float(distance(*args))
         np.testing.assert_allclose(float(grad[i]), (up - down) / (2 * eps), rtol=1e-5)
-
-
-def test_roller_racer_gait_through_the_generic_builder():
-    """A gait of another System from the generic builder: the roller racer, driven by its hinge
-    torque, the most forward distance per cycle with no net rotation; converged, periodic on the
-    model to 1e-9 and returning on the reference."""
-    rr = lj.roller_racer()
-    task = lc.make_gait(
-        rr,
-        period=2.0,
-        n_steps=40,
-        objective=(lc.Displacement((1.0, 0.0)),),
-        constraints=(lc.InitialRest((1,)), lc.NetDisplacement(dtheta=0.0)),
-        bounds=lc.Bounds.of(rr, q={"phi": 0.8}, u={rr.control_names[0]: 1.0}),
-    )
-    sol = lc.solve(task)
-    assert bool(sol.converged), lc.SOLVER_RESULTS[sol.result]
-    rp = lc.replay_gait(task, sol.params, cycles=2)
-    assert rp["model_return_error"] <= 1e-9 and float(rp["model_displacement"][0]) > 1e-3
-    assert abs(float(rp["model_displacement"][2])) <= 1e-9
-    assert np.all(rp["return_error"] < 1e-5)
 
 
 def test_gait_bad_inputs_are_clear():
