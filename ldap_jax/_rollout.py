@@ -106,12 +106,63 @@ class _Carry(NamedTuple):
     failure_index: Array
 
 
-def _masked(tree, mask):
-    return jax.tree_util.tree_map(lambda x: x * mask if jnp.issubdtype(x.dtype, jnp.inexact) else x, tree)
-
-
 def _where(mask, a, b):
     return jax.tree_util.tree_map(lambda x, y: jnp.where(mask, x, y), a, b)
+
+
+def _stop_if(failed, tree):
+    """``tree`` with its gradient cut where ``failed`` (a select: a NaN cotangent made inside a
+    discarded step cannot leak through it, as it would through a multiplication by zero)."""
+    return jax.tree_util.tree_map(
+        lambda x: jnp.where(failed, jax.lax.stop_gradient(x), x) if eqx_inexact(x) else x, tree
+    )
+
+
+def eqx_inexact(x) -> bool:
+    return hasattr(x, "dtype") and jnp.issubdtype(x.dtype, jnp.inexact)
+
+
+def failure_mask(values, ok, sink):
+    """``values`` where ``ok`` (a per-node mask on each leaf's leading axis), NaN elsewhere: the
+    nodes after a failure.
+
+    Its derivative says what the NaN means. A cotangent at a failed node that is zero (the loss
+    masked the failed run out with a double ``where``) passes as an exact zero, so it cannot
+    poison a batch; a nonzero one (the loss reads the failed run, NaN included) makes the
+    gradient with respect to every input of the run (``sink``: the system, controls, initial
+    state, times and integrator) NaN, whether the run failed at its first step or later (a
+    multiplication by a NaN mask only reached the inputs that the frozen state depended on: a
+    failure at step 0 gave an exact 0 gradient for the controls). One call per leaf, so that a
+    leaf the loss does not use keeps a symbolic zero cotangent and no derivative is formed for
+    it (a dense zero times the infinite derivative of ``|v|`` at ``v = 0`` was NaN).
+    """
+    return jax.tree_util.tree_map(lambda x: _mask_leaf(x, ok, sink) if eqx_inexact(x) else x, values)
+
+
+def _node_mask(ok, x):
+    return ok.reshape(ok.shape + (1,) * (x.ndim - ok.ndim))
+
+
+@jax.custom_vjp
+def _mask_leaf(x, ok, sink):
+    return jnp.where(_node_mask(ok, x), x, jnp.asarray(jnp.nan, x.dtype))
+
+
+def _mask_leaf_fwd(x, ok, sink):
+    return _mask_leaf(x, ok, sink), (ok, sink)
+
+
+def _mask_leaf_bwd(res, ct):
+    ok, sink = res
+    m = _node_mask(ok, ct)
+    read = jnp.any(~m & (ct != 0))
+    ct_sink = jax.tree_util.tree_map(
+        lambda y: jnp.where(read, jnp.asarray(jnp.nan, y.dtype), jnp.zeros_like(y)), sink
+    )
+    return jnp.where(m, ct, jnp.zeros_like(ct)), None, ct_sink
+
+
+_mask_leaf.defvjp(_mask_leaf_fwd, _mask_leaf_bwd)
 
 
 def rollout(
@@ -173,16 +224,19 @@ def rollout(
     state0 = integrator.init(system, h, q0, qdot0, c_stage0)
     obs0 = _tracing.observe(integrator, system, state0, c_first)
     obs0 = obs0._replace(qdot=qdot0)  # node 0 reports the given velocity
-    # invalid inputs (found on traced values): NaN from node 0 on
-    obs0 = _masked(obs0, jnp.where(initial_result == RESULTS.successful, 1.0, jnp.nan).astype(dtype))
     energy_scale0 = jnp.abs(obs0.energy)
     zero = jnp.zeros((), dtype)
     check_divergence = diagnostics and divergence is not None
 
     def step(carry: _Carry, k, observe: bool):
         """Step k: node k -> node k + 1 (observed when ``observe``)."""
-        c_stage = sample(k, carry.obs)
-        new_state, info = _tracing.step(integrator, system, h, carry.state, c_stage)
+        # after a failure the steps only repeat on the frozen state, and their results are
+        # discarded: cut their gradient with a select, so that a non-finite partial inside them
+        # (times the zero cotangent a discarded value gets) cannot reach the inputs as a NaN
+        failed_before = carry.result != RESULTS.successful
+        state_in, obs_in = _stop_if(failed_before, (carry.state, carry.obs))
+        c_stage = _stop_if(failed_before, sample(k, obs_in))
+        new_state, info = _tracing.step(integrator, system, h, state_in, c_stage)
         step_result = info.result
         obs, work, abs_work = carry.obs, carry.work, carry.abs_work
         if observe:
@@ -227,11 +281,8 @@ def rollout(
         return new
 
     def emit(carry: _Carry):
-        # a node after a failure is NaN, and so is every derivative through it: the mask
-        # multiplies (a `where` would give such nodes a silent zero gradient)
-        mask = jnp.where(carry.result == RESULTS.successful, 1.0, jnp.nan).astype(dtype)
-        obs = _masked(carry.obs, mask)
-        out = (obs, carry.work * mask, carry.residual, carry.converged, carry.iterations)
+        # the nodes after a failure hold the frozen state here; _assemble makes them NaN
+        out = (carry.obs, carry.work, carry.residual, carry.converged, carry.iterations)
         return carry._replace(
             residual=zero, converged=jnp.ones((), bool), iterations=jnp.zeros((), jnp.int32)
         ), out
@@ -268,15 +319,18 @@ def rollout(
         result=initial_result,
         failure_index=jnp.where(initial_result == RESULTS.successful, n_steps, 0).astype(jnp.int32),
     )
+    # every floating input of the run: a loss reading a failed node gets NaN gradients for all
+    sink = jax.tree_util.tree_leaves((system, integrator, q0, qdot0, controls, t0, h))
+    sink = [x for x in sink if eqx_inexact(x)]
     seg_body = segment
     if checkpoint == "sqrt" or (isinstance(checkpoint, int) and not isinstance(checkpoint, bool)):
         if stride == 1:  # nested: chunks of ~sqrt(N) (or the given length) steps, each checkpointed
-            return _chunked(step, emit, carry0, n_steps, checkpoint, plan, t0, h, obs0)
+            return _chunked(step, emit, carry0, n_steps, checkpoint, plan, t0, h, obs0, sink)
         seg_body = jax.checkpoint(segment)
     elif stride == 1:
         seg_body = _policy_body(segment, checkpoint)
     carry, outs = jax.lax.scan(seg_body, carry0, jnp.arange(n_seg, dtype=jnp.int32))
-    return _assemble(carry, outs, obs0, plan, t0, h, n_steps)
+    return _assemble(carry, outs, obs0, plan, t0, h, n_steps, sink)
 
 
 def _policy_body(body, checkpoint):
@@ -288,7 +342,7 @@ def _policy_body(body, checkpoint):
     return body
 
 
-def _chunked(step, emit, carry0, n_steps, checkpoint, plan, t0, h, obs0):
+def _chunked(step, emit, carry0, n_steps, checkpoint, plan, t0, h, obs0, sink):
     """Save every node, ~sqrt(N) checkpointed chunks of ~sqrt(N) steps (or chunks of the given
     length): O(sqrt N) stored carries for about one extra forward pass."""
     k = max(1, math.isqrt(n_steps - 1) + 1) if checkpoint == "sqrt" else min(int(checkpoint), n_steps)
@@ -307,10 +361,10 @@ def _chunked(step, emit, carry0, n_steps, checkpoint, plan, t0, h, obs0):
     ks = jnp.arange(n_chunks * k, dtype=jnp.int32).reshape(n_chunks, k)
     carry, outs = jax.lax.scan(chunk, carry0, (ks, jnp.asarray(valid_steps).reshape(n_chunks, k)))
     outs = jax.tree_util.tree_map(lambda o: o.reshape((n_chunks * k,) + o.shape[2:])[:n_steps], outs)
-    return _assemble(carry, outs, obs0, plan, t0, h, n_steps)
+    return _assemble(carry, outs, obs0, plan, t0, h, n_steps, sink)
 
 
-def _assemble(carry, outs, obs0, plan, t0, h, n_steps) -> RolloutOutput:
+def _assemble(carry, outs, obs0, plan, t0, h, n_steps, sink) -> RolloutOutput:
     """Prepend node 0 to the scanned outputs and select the saved nodes."""
     dtype = obs0.q.dtype
     first = (obs0, jnp.zeros((), dtype), jnp.zeros((), dtype), jnp.ones((), bool), jnp.zeros((), jnp.int32))
@@ -321,6 +375,10 @@ def _assemble(carry, outs, obs0, plan, t0, h, n_steps) -> RolloutOutput:
         outs = jax.tree_util.tree_map(lambda x: x[sel], outs)
         nodes = nodes[sel]
     obs, work, residual, converged, iterations = outs
+    # a node after the failing step (every node, for invalid inputs) is NaN: failure_mask
+    ok = (carry.result == RESULTS.successful) | (jnp.asarray(nodes, jnp.int32) <= carry.failure_index)
+    ok = ok & (carry.result != RESULTS.invalid_input)
+    obs, work = failure_mask((obs, work), ok, sink)
     return RolloutOutput(
         t=t0 + h * jnp.asarray(nodes, dtype),
         obs=obs,
