@@ -99,6 +99,7 @@ class _Carry(NamedTuple):
     obs: Observation
     work: Array
     abs_work: Array
+    impulse: Array  # (4, n_shape): the forces' impulse since t0, its lowest and highest values, f_k
     residual: Array
     converged: Array
     iterations: Array
@@ -227,6 +228,18 @@ def rollout(
     energy_scale0 = jnp.abs(obs0.energy)
     zero = jnp.zeros((), dtype)
     check_divergence = diagnostics and divergence is not None
+    n_s = system.n_shape
+    impulse0 = jnp.zeros((4, n_s), dtype)
+    static_forcing = None  # the forcing scale, when the controls know their impulse
+    if check_divergence:
+        mobility = jnp.abs(jax.lax.stop_gradient(_mobility(system, q0)))
+        spread = None if policy else controls.impulse_spread(t0, t0 + h * n_steps)
+        if spread is not None:
+            spread = jnp.abs(system.inputs(jax.lax.stop_gradient(spread).astype(dtype))[0])
+            static_forcing = 0.5 * spread @ mobility @ spread
+        else:
+            f0 = system.inputs(c_first)[0].astype(dtype)
+            impulse0 = impulse0.at[3].set(f0)
 
     def step(carry: _Carry, k, observe: bool):
         """Step k: node k -> node k + 1 (observed when ``observe``)."""
@@ -238,14 +251,15 @@ def rollout(
         c_stage = _stop_if(failed_before, sample(k, obs_in))
         new_state, info = _tracing.step(integrator, system, h, state_in, c_stage)
         step_result = info.result
-        obs, work, abs_work = carry.obs, carry.work, carry.abs_work
+        obs, work, abs_work, impulse = carry.obs, carry.work, carry.abs_work, carry.impulse
         if observe:
             if policy:
                 obs_new = _tracing.observe(integrator, system, new_state, c_stage[-1])
                 c_node = controls(t0 + h * (k + 1).astype(dtype), obs_new.q, obs_new.qdot)
                 obs_new = obs_new._replace(power=system.power(system.inputs(c_node)[0], obs_new.qdot[3:]))
             else:
-                obs_new = _tracing.observe(integrator, system, new_state, node_controls(k + 1, c_stage))
+                c_node = node_controls(k + 1, c_stage)
+                obs_new = _tracing.observe(integrator, system, new_state, c_node)
             if diagnostics:
                 work = carry.work + 0.5 * h * (carry.obs.power + obs_new.power)
                 abs_work = carry.abs_work + 0.5 * jnp.abs(h) * (
@@ -257,7 +271,16 @@ def rollout(
                 )
                 if check_divergence:
                     balance = jnp.abs(obs_new.energy - obs0.energy - work)
-                    bound = divergence * (energy_scale0 + abs_work) + jnp.finfo(dtype).tiny
+                    # the scale of the work: the absolute work so far, but no more than the
+                    # energy the forces' impulse can give the system at rest at q0 (the absolute
+                    # work of a diverging run grows with its divergence: the test never fired)
+                    if static_forcing is None:
+                        impulse = _impulse(carry.impulse, system.inputs(c_node)[0].astype(dtype), h)
+                        spread = impulse[2] - impulse[1]
+                        forcing = 0.5 * spread @ mobility @ spread
+                    else:
+                        forcing = static_forcing
+                    bound = divergence * (energy_scale0 + jnp.fmin(abs_work, forcing)) + jnp.finfo(dtype).tiny
                     step_result = RESULTS.where(
                         (step_result == RESULTS.successful) & (balance > bound), RESULTS.diverged, step_result
                     )
@@ -272,6 +295,7 @@ def rollout(
             obs=_where(keep, obs, carry.obs),
             work=jnp.where(keep, work, carry.work),
             abs_work=jnp.where(keep, abs_work, carry.abs_work),
+            impulse=jnp.where(keep, impulse, carry.impulse),
             residual=jnp.maximum(carry.residual, info.residual),
             converged=carry.converged & (info.result != RESULTS.not_converged),
             iterations=carry.iterations + info.iterations,
@@ -313,6 +337,7 @@ def rollout(
         obs=obs0,
         work=zero,
         abs_work=zero,
+        impulse=impulse0,
         residual=zero,
         converged=jnp.ones((), bool),
         iterations=jnp.zeros((), jnp.int32),
@@ -331,6 +356,24 @@ def rollout(
         seg_body = _policy_body(segment, checkpoint)
     carry, outs = jax.lax.scan(seg_body, carry0, jnp.arange(n_seg, dtype=jnp.int32))
     return _assemble(carry, outs, obs0, plan, t0, h, n_steps, sink)
+
+
+def _mobility(system: AbstractSystem, q0: Array) -> Array:
+    """``A`` with ``1/2 P^T A P`` the kinetic energy an impulse ``P`` of the shape forces gives the
+    system at rest at ``q0`` (the constrained inverse mass matrix on the shape coordinates)."""
+    n_s = system.n_shape
+    zero = jnp.zeros(n_s, q0.dtype)
+
+    def response(p):
+        return system.full_acceleration(q0, jnp.zeros_like(q0), p, zero)[0][3:]
+
+    return jax.jacfwd(response)(zero)
+
+
+def _impulse(prev: Array, f: Array, h: Array) -> Array:
+    """The impulse record ``(P, min P, max P, f)`` after one more step (trapezoidal)."""
+    p = prev[0] + 0.5 * h * (prev[3] + f)
+    return jnp.stack([p, jnp.minimum(prev[1], p), jnp.maximum(prev[2], p), f])
 
 
 def _policy_body(body, checkpoint):
