@@ -69,8 +69,19 @@ def check_save(save: Any, n_steps: int) -> SavePlan:
         if save < 1 or n_steps % save:
             raise ValueError(f"'save': a stride must be a positive divisor of n_steps={n_steps}, got {save}")
         return SavePlan(int(save), None)
-    if isinstance(save, (Sequence, np.ndarray)) and not isinstance(save, (str, bytes)):
-        idx = [int(i) for i in np.asarray(save).ravel()]
+    if isinstance(save, jax.core.Tracer):
+        raise ValueError(
+            "'save': node indices must be known when simulate is traced (a NumPy array, a list or a "
+            "concrete JAX array; they fix the output's shape), got a traced array"
+        )
+    if isinstance(save, (Sequence, np.ndarray, jax.Array)) and not isinstance(save, (str, bytes)):
+        try:
+            values = np.asarray(save, dtype=float).ravel()
+        except (TypeError, ValueError) as err:
+            raise ValueError(f"'save': node indices must be integers, got {save!r}") from err
+        if not np.all(np.isfinite(values)) or np.any(values != np.round(values)):
+            raise ValueError(f"'save': node indices must be integers, got {save!r}")
+        idx = [int(i) for i in values]
         if not idx or any(i < 0 or i > n_steps for i in idx) or any(b <= a for a, b in zip(idx, idx[1:])):
             raise ValueError(
                 "'save': node indices must be strictly increasing integers in "
