@@ -207,19 +207,14 @@ def _c_library(log):
     return ctypes.CDLL(lib_path)
 
 
-def compiled_c(cfg: Config, headline_rows, log) -> list[dict]:
-    """The same snakeboard RDP rollout (alpha = 1/2, exp) in scalar C (``scripts/c``), compiled
-    here at ``-O3 -march=native`` without fast-math: a loop over maneuvers with the steps inside,
-    the model's constants hoisted, one sincos per angle, with glibc's ``sin``/``sincos`` and with
-    the inlined polynomial kernels that ldap_jax uses. Every node is checked against
-    ``lj.simulate`` (round-off); the positions-only variants (the final node, as ``save="final"``)
-    are timed on one thread and on every core: ns per step (wall) and, on one thread, the
-    thread's CPU time (less inflated when other processes share the cores)."""
+def _c_setup(cfg: Config, log):
+    """The compiled C library and ``call_args(q)`` for the snakeboard maneuvers of the headline
+    (B x N, 10 s): the same initial momenta as ours. ``None`` without a C compiler."""
     import ctypes
 
     lib = _c_library(log)
     if lib is None:
-        return []
+        return None
     system = SYSTEMS["snakeboard"]
     b, n, t_final = cfg.batch, cfg.steps, 10.0
     h = t_final / n
@@ -246,6 +241,23 @@ def compiled_c(cfg: Config, headline_rows, log) -> list[dict]:
             q.ctypes.data_as(ptr),
         )
 
+    return lib, call_args, (q0, qdot0, ctl)
+
+
+def compiled_c(cfg: Config, headline_rows, log) -> list[dict]:
+    """The same snakeboard RDP rollout (alpha = 1/2, exp) in scalar C (``scripts/c``), compiled
+    here at ``-O3 -march=native`` without fast-math: a loop over maneuvers with the steps inside,
+    the model's constants hoisted, one sincos per angle, with glibc's ``sin``/``sincos`` and with
+    the inlined polynomial kernels that ldap_jax uses. Every node is checked against
+    ``lj.simulate`` (round-off); the positions-only variants (the final node, as ``save="final"``)
+    are timed on one thread and on every core: ns per step (wall) and, on one thread, the
+    thread's CPU time (less inflated when other processes share the cores)."""
+    setup = _c_setup(cfg, log)
+    if setup is None:
+        return []
+    lib, call_args, (q0, qdot0, ctl) = setup
+    system = SYSTEMS["snakeboard"]
+    b, n, t_final = cfg.batch, cfg.steps, 10.0
     ours = np.asarray(rollout_fn(system, lj.RDP(), n, t_final, save="all")(q0, qdot0, ctl))
     best_ours = max(r["steps_per_s_q"] for r in headline_rows) if headline_rows else None
     rows = []
@@ -290,18 +302,23 @@ def compiled_c(cfg: Config, headline_rows, log) -> list[dict]:
 SUBSTEPS = {2: 1, 4: 5, 6: 9}
 
 
-def ours_over_c(cfg: Config, c_rows, log) -> list[dict]:
+def ours_over_c(cfg: Config, log) -> list[dict]:
     """The positions-only rollout (snakeboard, ``save="final", diagnostics=False``, B x N) for
     RDP orders 2, 4 and 6, as a user writes it, ``jax.jit(jax.vmap(...))`` (XLA's default
-    options), and with ``compiler_options=lj.compiler_options()``, both timed in alternating
-    rounds; on one device against C on one thread and sharded over every device against C on
-    every core. Ours/C is the time ratio per composed step, C's time being ``SUBSTEPS[order]``
-    times its order-2 step (the faster of its two sin/cos variants)."""
-    if not c_rows:
+    options), and with ``compiler_options=lj.compiler_options()``; on one device against the C
+    rollout on one thread, and sharded over every device against C on every core. Ours and C run
+    in alternating rounds (paired, so that a change of load hits both). C's time per composed step
+    is ``SUBSTEPS[order]`` times its order-2 step (inlined polynomial sincos, the faster variant).
+    Reported: wall and CPU time per step (CPU: the process's, JAX's threads included; C on one
+    thread: the thread's) and their ratios ours/C, of the minima over the rounds."""
+    setup = _c_setup(cfg, log)
+    if setup is None:
         return []
+    lib, call_args, data = setup
+    c_fn = lib.rollout_final_poly
+    q_c = np.zeros((cfg.batch, 5))
     system = SYSTEMS["snakeboard"]
     b, n = cfg.batch, cfg.steps
-    data = maneuvers(system, b)
     layouts = [("1 device", data, 1)]
     if jax.device_count() > 1:
         layouts.append(
@@ -312,12 +329,20 @@ def ours_over_c(cfg: Config, c_rows, log) -> list[dict]:
             )
         )
     opts = lj.compiler_options()
+
+    def run_c(threads):
+        lib.set_threads(threads)
+        t, c = time.perf_counter(), time.thread_time() if threads == 1 else time.process_time()
+        c_fn(*call_args(q_c))
+        cpu = (time.thread_time() if threads == 1 else time.process_time()) - c
+        return time.perf_counter() - t, cpu
+
     rows = []
     for order in (2, 4, 6):
         integ = lj.RDP(order=order)
 
         def one(q0, qdot0, ctl, integ=integ):
-            return lj.simulate(
+            traj = lj.simulate(
                 system,
                 q0,
                 qdot0,
@@ -328,36 +353,45 @@ def ours_over_c(cfg: Config, c_rows, log) -> list[dict]:
                 check_constraints=False,
                 save="final",
                 diagnostics=False,
-            ).q
+            )
+            return traj.q
 
         fns = {"plain jax.jit": jax.jit(jax.vmap(one))}
         if opts is not None:
             fns["lj.compiler_options()"] = jax.jit(jax.vmap(one), compiler_options=opts)
         for layout, args, threads in layouts:
-            c_ns = min(r["ns_per_step"] for r in c_rows if r["threads"] == threads) * SUBSTEPS[order]
             for f in fns.values():
                 jax.block_until_ready(f(*args))
-            best = {k: float("inf") for k in fns}
-            for _ in range(cfg.repeats):  # alternating rounds
+            best = {k: [float("inf"), float("inf")] for k in (*fns, "C")}
+            for _ in range(cfg.repeats):  # alternating rounds: ours (each compile), then C
                 for k, f in fns.items():
-                    t = time.perf_counter()
+                    t, c = time.perf_counter(), time.process_time()
                     jax.block_until_ready(f(*args))
-                    best[k] = min(best[k], time.perf_counter() - t)
-            for k, sec in best.items():
-                ns = sec / (b * n) * 1e9
-                rows.append(
-                    dict(
-                        order=order,
-                        layout=layout,
-                        compile=k,
-                        B=b,
-                        N=n,
-                        ns_per_step=ns,
-                        c_ns_per_step=c_ns,
-                        ours_over_c=ns / c_ns,
-                    )
+                    wall, cpu = time.perf_counter() - t, time.process_time() - c
+                    best[k] = [min(best[k][0], wall), min(best[k][1], cpu)]
+                wall, cpu = run_c(threads)
+                best["C"] = [min(best["C"][0], wall), min(best["C"][1], cpu)]
+            c_ns = [x / (b * n) * 1e9 * SUBSTEPS[order] for x in best["C"]]
+            for k in fns:
+                ns = [x / (b * n) * 1e9 for x in best[k]]
+                row = dict(
+                    order=order,
+                    layout=layout,
+                    compile=k,
+                    B=b,
+                    N=n,
+                    ns_per_step=ns[0],
+                    cpu_ns_per_step=ns[1],
+                    c_ns_per_step=c_ns[0],
+                    c_cpu_ns_per_step=c_ns[1],
+                    ours_over_c=ns[0] / c_ns[0],
+                    ours_over_c_cpu=ns[1] / c_ns[1],
                 )
-                log(f"  RDP{order} {layout}, {k}: {ns:.1f} ns/step, C {c_ns:.1f}: ours/C {ns / c_ns:.2f}")
+                rows.append(row)
+                log(
+                    f"  RDP{order} {layout}, {k}: {ns[0]:.1f} ns/step (CPU {ns[1]:.1f}), C {c_ns[0]:.1f} "
+                    f"(CPU {c_ns[1]:.1f}): ours/C {row['ours_over_c']:.2f} (CPU {row['ours_over_c_cpu']:.2f})"
+                )
     return rows
 
 
@@ -858,12 +892,14 @@ def write_markdown(path, res):
             "",
             "## Ours / C, positions only (time per composed step; C = substeps x its order-2 step)",
             "",
-            "| order | layout | compiled with | ns/step | C ns/step | ours / C |",
-            "|---|---|---|---|---|---|",
+            "Ours and C in alternating rounds; CPU: the process's CPU time (C on one thread: the thread's).",
+            "",
+            "| order | layout | compiled with | ns/step | C ns/step | ours / C | CPU: ours / C |",
+            "|---|---|---|---|---|---|---|",
         ]
         L += [
             f"| {r['order']} | {r['layout']} | {r['compile']} | {r['ns_per_step']:.1f} | "
-            f"{r['c_ns_per_step']:.1f} | {r['ours_over_c']:.2f} |"
+            f"{r['c_ns_per_step']:.1f} | {r['ours_over_c']:.2f} | {r['ours_over_c_cpu']:.2f} |"
             for r in res["ours_over_c"]
         ]
     L += _section(
@@ -1081,7 +1117,7 @@ def main(argv=None) -> int:
     runs = {
         "headline": lambda: headline(cfg, log),
         "compiled_c": lambda: compiled_c(cfg, res.get("headline", []), log),
-        "ours_over_c": lambda: ours_over_c(cfg, res.get("compiled_c", []), log),
+        "ours_over_c": lambda: ours_over_c(cfg, log),
         "throughput": lambda: throughput(cfg, log),
         "wp_10s": lambda: work_precision(cfg, 10.0, cfg.wp_steps_10s, log),
         "wp_600s": lambda: work_precision(cfg, 600.0, cfg.wp_steps_600s, log),
