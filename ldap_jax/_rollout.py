@@ -151,6 +151,24 @@ def failure_mask(values, ok, sink):
     return jax.tree_util.tree_map(lambda x: _mask_leaf(x, ok, sink) if eqx_inexact(x) else x, values)
 
 
+def failure_mask_linear(values, ok, sink):
+    """:func:`failure_mask` for forward mode (``jax.jvp``, ``jax.jacfwd``, ``jax.hessian``), which
+    a custom VJP does not support: the failed nodes are ``NaN + 0 * sum(sink)``. Its derivative is
+    linear, so it cannot tell a masked node from a read one by the cotangent: a loss whose
+    derivative at the NaN nodes is NaN (a square, a norm, a product) gets NaN for every input; a
+    zero cotangent (a double ``where``) gives exact zeros; a loss linear in a failed node gets 0
+    from it (its value is NaN)."""
+    total = sum(jnp.sum(y) for y in sink) if sink else 0.0
+
+    def one(x):
+        if not eqx_inexact(x):
+            return x
+        fill = jnp.asarray(jnp.nan, x.dtype) + jnp.asarray(0.0, x.dtype) * total.astype(x.dtype)
+        return jnp.where(_node_mask(ok, x), x, fill)
+
+    return jax.tree_util.tree_map(one, values)
+
+
 def _node_mask(ok, x):
     return ok.reshape(ok.shape + (1,) * (x.ndim - ok.ndim))
 
@@ -192,6 +210,7 @@ def rollout(
     checkpoint: bool | str | int = False,
     divergence: float | None = 100.0,
     initial_result: RESULTS = RESULTS.successful,
+    forward_mode: bool = False,
 ) -> RolloutOutput:
     """Integrate from ``(q0, qdot0)`` at ``t0`` with ``n_steps`` steps of size ``h``.
 
@@ -210,6 +229,8 @@ def rollout(
             (``None``: never). Needs ``diagnostics``.
         initial_result: a failure found in the inputs on traced values (the run then reports it
             with every node NaN).
+        forward_mode: the caller differentiates in forward mode: the failed nodes are masked by
+            :func:`failure_mask_linear` (a custom VJP has no forward mode).
     """
     from ._policy import AbstractPolicy
 
@@ -357,7 +378,7 @@ def rollout(
     )
     # every floating input of the run: a loss reading a failed node gets NaN gradients for all
     sink = jax.tree_util.tree_leaves((system, integrator, q0, qdot0, controls, t0, h))
-    sink = [x for x in sink if eqx_inexact(x)]
+    sink = ([x for x in sink if eqx_inexact(x)], forward_mode)
     seg_body = segment
     if checkpoint == "sqrt" or (isinstance(checkpoint, int) and not isinstance(checkpoint, bool)):
         if stride == 1:  # nested: chunks of ~sqrt(N) (or the given length) steps, each checkpointed
@@ -432,7 +453,8 @@ def _assemble(carry, outs, obs0, plan, t0, h, n_steps, sink) -> RolloutOutput:
     # a node after the failing step (every node, for invalid inputs) is NaN: failure_mask
     ok = (carry.result == RESULTS.successful) | (jnp.asarray(nodes, jnp.int32) <= carry.failure_index)
     ok = ok & (carry.result != RESULTS.invalid_input)
-    obs, work = failure_mask((obs, work), ok, sink)
+    sink, forward_mode = sink
+    obs, work = (failure_mask_linear if forward_mode else failure_mask)((obs, work), ok, sink)
     return RolloutOutput(
         t=t0 + h * jnp.asarray(nodes, dtype),
         obs=obs,

@@ -222,7 +222,11 @@ def simulate(
     reads them: the failed members then contribute exact zeros, and the healthy members'
     gradients are those of the batch without them. Masking only the loss
     (``jnp.where(traj.failed, 0.0, loss(traj.q))``) is not enough: the loss's own derivative at
-    the NaN nodes is NaN (``0 * NaN``), in any JAX program.
+    the NaN nodes is NaN (``0 * NaN``), in any JAX program. In forward mode (``jax.jacfwd``,
+    ``jax.hessian``, applied to a function that calls ``simulate`` directly or under ``jax.jit``
+    inside them) the mask is linear: a loss linear in a failed node gets 0 from it (its value is
+    NaN). A forward-mode transformation of an already jitted function that calls ``simulate``
+    (``jax.jacfwd(jax.jit(f))``) is not supported: apply ``jax.jit`` outside it.
 
     Raises:
         TypeError: a system, controls or integrator of the wrong type.
@@ -254,6 +258,7 @@ def simulate(
         divergence = check_positive_number("divergence", divergence, allow_inf=True)
     raise_if_concrete(system, integrator, q0, qdot0, controls, t0, t_final, check_constraints)
     settings = dict(
+        forward_mode=_forward_mode((system, integrator, q0, qdot0, controls, t0, t_final)),
         n_steps=n_steps,
         plan=plan,
         diagnostics=bool(diagnostics),
@@ -275,6 +280,21 @@ def simulate(
         integrator,
         **settings,
     )
+
+
+def _forward_mode(tree: Any) -> bool:
+    """True when an input is being differentiated in forward mode (``jax.jvp``, ``jax.jacfwd``,
+    ``jax.hessian``: a JVP tracer somewhere in a leaf's stack of tracers). The failed nodes are then
+    masked without the custom VJP, which has no forward mode. (A forward-mode transformation
+    outside a ``jax.jit`` that holds the call is not seen, and fails with JAX's message.)"""
+    for x in jax.tree_util.tree_leaves(tree):
+        for _ in range(64):
+            if not isinstance(x, jax.core.Tracer):
+                break
+            if type(x).__name__ == "JVPTracer":
+                return True
+            x = getattr(x, "primal", getattr(x, "val", None))
+    return False
 
 
 def _lift_closure(policy: AbstractPolicy, q0: Array, qdot0: Array) -> AbstractPolicy:
@@ -334,6 +354,7 @@ def _simulate(
     divergence,
     throw,
     check_constraints,
+    forward_mode,
 ):
     dtype = jnp.result_type(q0, qdot0)
     q0, qdot0 = jnp.asarray(q0, dtype), jnp.asarray(qdot0, dtype)
@@ -357,6 +378,7 @@ def _simulate(
         checkpoint=checkpoint,
         divergence=divergence,
         initial_result=initial,
+        forward_mode=forward_mode,
     )
     obs = out.obs
     traj = Trajectory(

@@ -880,6 +880,23 @@ def test_throw_under_vmap_raises_with_the_failures_message():
     assert "does not\n            say which one" in lj.simulate.__doc__
 
 
+@pytest.mark.xdist_group("faults_issue47")
+def test_forward_mode_through_simulate():
+    """The custom VJP that masks failed nodes has no forward mode: simulate sees a forward-mode
+    transformation of its inputs and masks them linearly instead. ``jacfwd`` equals ``jacrev``, a
+    Hessian compiles, and a step-0 failure gives NaN in forward mode too."""
+
+    def f(a, q0=Z5):
+        return _first_step_loss(a, q0=q0)[1].q[-1]
+
+    np.testing.assert_allclose(
+        np.asarray(jax.jacfwd(f)(AMP)), np.asarray(jax.jacrev(f)(AMP)), rtol=1e-10, atol=1e-12
+    )
+    hess = jax.jit(jax.hessian(lambda a: jnp.sum(f(a) ** 2)))(AMP)
+    assert hess.shape == (2, 1, 2, 1) and np.all(np.isfinite(np.asarray(hess)))
+    assert np.all(np.isnan(np.asarray(jax.jacfwd(lambda a: _first_step_loss(a)[0])(AMP))))
+
+
 # ===================================================================================== control
 PARK = lc.parallel_park(n_steps=N)
 GAIT = lc.forward_gait(n_steps=N)
