@@ -71,6 +71,14 @@ class AbstractControls(eqx.Module):
         the order of the method there."""
         return None
 
+    def impulse_spread(self, t0: Array, t1: Array) -> Float[Array, " n_channels"] | None:
+        """An estimate, per channel, of the range (largest minus smallest value) of the integral
+        ``int_{t0}^{t} controls`` over ``t`` in ``[t0, t1]``, or ``None`` (unknown: a rollout then
+        accumulates it along its nodes). The divergence test of :func:`ldap_jax.simulate` takes
+        its energy scale from it, so it must not be computed from the run's own nodes when they can
+        alias (a sinusoid sampled at a step near its period)."""
+        return None
+
     def derivative(self, t: ArrayLike) -> Float[Array, " n_channels"]:
         """``d/dt controls(t)`` by forward-mode autodiff."""
         t = jnp.asarray(t)
@@ -121,6 +129,16 @@ class Sinusoids(AbstractControls):
     def __call__(self, t):
         t = jnp.asarray(t, self.amplitude.dtype)
         return jnp.sum(self.amplitude * jnp.sin(self.frequency * t + self.phase), axis=-1)
+
+    def impulse_spread(self, t0, t1):
+        """``sum_j min(2 |A_j| / |W_j|, |A_j| (t1 - t0))``: a term's integral is a sinusoid of
+        amplitude ``|A_j| / |W_j|`` (or, over a short interval or at ``W_j = 0``, grows no faster
+        than ``|A_j|``)."""
+        a, w = jnp.abs(self.amplitude), jnp.abs(self.frequency)
+        span = jnp.abs(t1 - t0)
+        safe_w = jnp.where(w > 0, w, 1.0)
+        term = jnp.where(w > 0, jnp.minimum(2 * a / safe_w, a * span), a * span)
+        return jnp.sum(term, axis=-1)
 
     def sampler(self, h, fractions):
         """Angle addition: ``sin(w (t + f h) + p) = sin(w t + p) cos(w f h) + cos(w t + p) sin(w f h)``,
@@ -201,6 +219,17 @@ class Sampled(AbstractControls):
         w = s - i.astype(s.dtype)
         return (1 - w) * self.values[i] + w * self.values[i + 1]
 
+    def impulse_spread(self, t0, t1):
+        """The range of the exact integral of the interpolant at its samples (held constant
+        outside ``[t0, t_final]``, where it grows by at most ``|end value|`` per second)."""
+        dt = (self.t_final - self.t0) / (self.values.shape[0] - 1)
+        p = jnp.cumsum(0.5 * dt * (self.values[1:] + self.values[:-1]), axis=0)
+        p = jnp.concatenate([jnp.zeros_like(self.values[:1]), p])
+        outside = jnp.maximum(jnp.abs(self.values[0]), jnp.abs(self.values[-1])) * (
+            jnp.maximum(self.t0 - t0, 0) + jnp.maximum(t1 - self.t_final, 0)
+        )
+        return jnp.max(p, axis=0) - jnp.min(p, axis=0) + outside
+
 
 class Constant(AbstractControls):
     """Constant channel values: ``controls(t) = values`` (e.g. zeros for an uncontrolled run).
@@ -221,6 +250,9 @@ class Constant(AbstractControls):
 
     def __call__(self, t):
         return self.values
+
+    def impulse_spread(self, t0, t1):
+        return jnp.abs(self.values) * jnp.abs(t1 - t0)
 
 
 def _concrete(*xs) -> bool:

@@ -24,6 +24,7 @@ from jaxtyping import Array, Float
 
 from ._compilation_cache import compiled_unless_staged
 from ._linalg import solve
+from ._results import RESULTS
 from ._typing import ArrayLike
 from ._validation import cast_floats, check_array
 from .integrators import RDP, AbstractIntegrator
@@ -157,7 +158,12 @@ class DiscreteDynamics(eqx.Module):
         u0, u1 = (self._checked(name, u, "u").astype(x.dtype) for name, u in (("u0", u0), ("u1", u1)))
         state = self.unpack(x, u0)
         state, info = self.integrator.step(self.system, self.h, state, self.stage_controls(u0, u1))
-        return self.pack(state), info
+        x1 = self.pack(state)
+        # a step traced in discretize (under the user's jit) is checked here: NaN and invalid_input
+        ok = jnp.isfinite(self.h) & (self.h > 0)
+        info = info._replace(result=RESULTS.where(ok, info.result, RESULTS.invalid_input))
+        x1 = jnp.where(ok, x1, jnp.nan)
+        return x1, info
 
     @compiled_unless_staged
     def observe(self, x: Float[Array, " n"], u: ArrayLike) -> Observation:

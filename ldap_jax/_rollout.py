@@ -69,8 +69,19 @@ def check_save(save: Any, n_steps: int) -> SavePlan:
         if save < 1 or n_steps % save:
             raise ValueError(f"'save': a stride must be a positive divisor of n_steps={n_steps}, got {save}")
         return SavePlan(int(save), None)
-    if isinstance(save, (Sequence, np.ndarray)) and not isinstance(save, (str, bytes)):
-        idx = [int(i) for i in np.asarray(save).ravel()]
+    if isinstance(save, jax.core.Tracer):
+        raise ValueError(
+            "'save': node indices must be known when simulate is traced (a NumPy array, a list or a "
+            "concrete JAX array; they fix the output's shape), got a traced array"
+        )
+    if isinstance(save, (Sequence, np.ndarray, jax.Array)) and not isinstance(save, (str, bytes)):
+        try:
+            values = np.asarray(save, dtype=float).ravel()
+        except (TypeError, ValueError) as err:
+            raise ValueError(f"'save': node indices must be integers, got {save!r}") from err
+        if not np.all(np.isfinite(values)) or np.any(values != np.round(values)):
+            raise ValueError(f"'save': node indices must be integers, got {save!r}")
+        idx = [int(i) for i in values]
         if not idx or any(i < 0 or i > n_steps for i in idx) or any(b <= a for a, b in zip(idx, idx[1:])):
             raise ValueError(
                 "'save': node indices must be strictly increasing integers in "
@@ -99,6 +110,7 @@ class _Carry(NamedTuple):
     obs: Observation
     work: Array
     abs_work: Array
+    impulse: Array  # (4, n_shape): the forces' impulse since t0, its lowest and highest values, f_k
     residual: Array
     converged: Array
     iterations: Array
@@ -106,12 +118,81 @@ class _Carry(NamedTuple):
     failure_index: Array
 
 
-def _masked(tree, mask):
-    return jax.tree_util.tree_map(lambda x: x * mask if jnp.issubdtype(x.dtype, jnp.inexact) else x, tree)
-
-
 def _where(mask, a, b):
     return jax.tree_util.tree_map(lambda x, y: jnp.where(mask, x, y), a, b)
+
+
+def _stop_if(failed, tree):
+    """``tree`` with its gradient cut where ``failed`` (a select: a NaN cotangent made inside a
+    discarded step cannot leak through it, as it would through a multiplication by zero)."""
+    return jax.tree_util.tree_map(
+        lambda x: jnp.where(failed, jax.lax.stop_gradient(x), x) if eqx_inexact(x) else x, tree
+    )
+
+
+def eqx_inexact(x) -> bool:
+    return hasattr(x, "dtype") and jnp.issubdtype(x.dtype, jnp.inexact)
+
+
+def failure_mask(values, ok, sink):
+    """``values`` where ``ok`` (a per-node mask on each leaf's leading axis), NaN elsewhere: the
+    nodes after a failure.
+
+    Its derivative says what the NaN means. A cotangent at a failed node that is zero (the loss
+    masked the failed run out with a double ``where``) passes as an exact zero, so it cannot
+    poison a batch; a nonzero one (the loss reads the failed run, NaN included) makes the
+    gradient with respect to every input of the run (``sink``: the system, controls, initial
+    state, times and integrator) NaN, whether the run failed at its first step or later (a
+    multiplication by a NaN mask only reached the inputs that the frozen state depended on: a
+    failure at step 0 gave an exact 0 gradient for the controls). One call per leaf, so that a
+    leaf the loss does not use keeps a symbolic zero cotangent and no derivative is formed for
+    it (a dense zero times the infinite derivative of ``|v|`` at ``v = 0`` was NaN).
+    """
+    return jax.tree_util.tree_map(lambda x: _mask_leaf(x, ok, sink) if eqx_inexact(x) else x, values)
+
+
+def failure_mask_linear(values, ok, sink):
+    """:func:`failure_mask` for forward mode (``jax.jvp``, ``jax.jacfwd``, ``jax.hessian``), which
+    a custom VJP does not support: the failed nodes are ``NaN + 0 * sum(sink)``. Its derivative is
+    linear, so it cannot tell a masked node from a read one by the cotangent: a loss whose
+    derivative at the NaN nodes is NaN (a square, a norm, a product) gets NaN for every input; a
+    zero cotangent (a double ``where``) gives exact zeros; a loss linear in a failed node gets 0
+    from it (its value is NaN)."""
+    total = sum(jnp.sum(y) for y in sink) if sink else 0.0
+
+    def one(x):
+        if not eqx_inexact(x):
+            return x
+        fill = jnp.asarray(jnp.nan, x.dtype) + jnp.asarray(0.0, x.dtype) * total.astype(x.dtype)
+        return jnp.where(_node_mask(ok, x), x, fill)
+
+    return jax.tree_util.tree_map(one, values)
+
+
+def _node_mask(ok, x):
+    return ok.reshape(ok.shape + (1,) * (x.ndim - ok.ndim))
+
+
+@jax.custom_vjp
+def _mask_leaf(x, ok, sink):
+    return jnp.where(_node_mask(ok, x), x, jnp.asarray(jnp.nan, x.dtype))
+
+
+def _mask_leaf_fwd(x, ok, sink):
+    return _mask_leaf(x, ok, sink), (ok, sink)
+
+
+def _mask_leaf_bwd(res, ct):
+    ok, sink = res
+    m = _node_mask(ok, ct)
+    read = jnp.any(~m & (ct != 0))
+    ct_sink = jax.tree_util.tree_map(
+        lambda y: jnp.where(read, jnp.asarray(jnp.nan, y.dtype), jnp.zeros_like(y)), sink
+    )
+    return jnp.where(m, ct, jnp.zeros_like(ct)), None, ct_sink
+
+
+_mask_leaf.defvjp(_mask_leaf_fwd, _mask_leaf_bwd)
 
 
 def rollout(
@@ -129,6 +210,7 @@ def rollout(
     checkpoint: bool | str | int = False,
     divergence: float | None = 100.0,
     initial_result: RESULTS = RESULTS.successful,
+    forward_mode: bool = False,
 ) -> RolloutOutput:
     """Integrate from ``(q0, qdot0)`` at ``t0`` with ``n_steps`` steps of size ``h``.
 
@@ -147,6 +229,8 @@ def rollout(
             (``None``: never). Needs ``diagnostics``.
         initial_result: a failure found in the inputs on traced values (the run then reports it
             with every node NaN).
+        forward_mode: the caller differentiates in forward mode: the failed nodes are masked by
+            :func:`failure_mask_linear` (a custom VJP has no forward mode).
     """
     from ._policy import AbstractPolicy
 
@@ -173,25 +257,41 @@ def rollout(
     state0 = integrator.init(system, h, q0, qdot0, c_stage0)
     obs0 = _tracing.observe(integrator, system, state0, c_first)
     obs0 = obs0._replace(qdot=qdot0)  # node 0 reports the given velocity
-    # invalid inputs (found on traced values): NaN from node 0 on
-    obs0 = _masked(obs0, jnp.where(initial_result == RESULTS.successful, 1.0, jnp.nan).astype(dtype))
     energy_scale0 = jnp.abs(obs0.energy)
     zero = jnp.zeros((), dtype)
     check_divergence = diagnostics and divergence is not None
+    n_s = system.n_shape
+    impulse0 = jnp.zeros((4, n_s), dtype)
+    static_forcing = None  # the forcing scale, when the controls know their impulse
+    if check_divergence:
+        mobility = jnp.abs(jax.lax.stop_gradient(_mobility(system, q0)))
+        spread = None if policy else controls.impulse_spread(t0, t0 + h * n_steps)
+        if spread is not None:
+            spread = jnp.abs(system.inputs(jax.lax.stop_gradient(spread).astype(dtype))[0])
+            static_forcing = 0.5 * spread @ mobility @ spread
+        else:
+            f0 = system.inputs(c_first)[0].astype(dtype)
+            impulse0 = impulse0.at[3].set(f0)
 
     def step(carry: _Carry, k, observe: bool):
         """Step k: node k -> node k + 1 (observed when ``observe``)."""
-        c_stage = sample(k, carry.obs)
-        new_state, info = _tracing.step(integrator, system, h, carry.state, c_stage)
+        # after a failure the steps only repeat on the frozen state, and their results are
+        # discarded: cut their gradient with a select, so that a non-finite partial inside them
+        # (times the zero cotangent a discarded value gets) cannot reach the inputs as a NaN
+        failed_before = carry.result != RESULTS.successful
+        state_in, obs_in = _stop_if(failed_before, (carry.state, carry.obs))
+        c_stage = _stop_if(failed_before, sample(k, obs_in))
+        new_state, info = _tracing.step(integrator, system, h, state_in, c_stage)
         step_result = info.result
-        obs, work, abs_work = carry.obs, carry.work, carry.abs_work
+        obs, work, abs_work, impulse = carry.obs, carry.work, carry.abs_work, carry.impulse
         if observe:
             if policy:
                 obs_new = _tracing.observe(integrator, system, new_state, c_stage[-1])
                 c_node = controls(t0 + h * (k + 1).astype(dtype), obs_new.q, obs_new.qdot)
                 obs_new = obs_new._replace(power=system.power(system.inputs(c_node)[0], obs_new.qdot[3:]))
             else:
-                obs_new = _tracing.observe(integrator, system, new_state, node_controls(k + 1, c_stage))
+                c_node = node_controls(k + 1, c_stage)
+                obs_new = _tracing.observe(integrator, system, new_state, c_node)
             if diagnostics:
                 work = carry.work + 0.5 * h * (carry.obs.power + obs_new.power)
                 abs_work = carry.abs_work + 0.5 * jnp.abs(h) * (
@@ -203,7 +303,16 @@ def rollout(
                 )
                 if check_divergence:
                     balance = jnp.abs(obs_new.energy - obs0.energy - work)
-                    bound = divergence * (energy_scale0 + abs_work) + jnp.finfo(dtype).tiny
+                    # the scale of the work: the absolute work so far, but no more than the
+                    # energy the forces' impulse can give the system at rest at q0 (the absolute
+                    # work of a diverging run grows with its divergence: the test never fired)
+                    if static_forcing is None:
+                        impulse = _impulse(carry.impulse, system.inputs(c_node)[0].astype(dtype), h)
+                        spread = impulse[2] - impulse[1]
+                        forcing = 0.5 * spread @ mobility @ spread
+                    else:
+                        forcing = static_forcing
+                    bound = divergence * (energy_scale0 + jnp.fmin(abs_work, forcing)) + jnp.finfo(dtype).tiny
                     step_result = RESULTS.where(
                         (step_result == RESULTS.successful) & (balance > bound), RESULTS.diverged, step_result
                     )
@@ -218,6 +327,7 @@ def rollout(
             obs=_where(keep, obs, carry.obs),
             work=jnp.where(keep, work, carry.work),
             abs_work=jnp.where(keep, abs_work, carry.abs_work),
+            impulse=jnp.where(keep, impulse, carry.impulse),
             residual=jnp.maximum(carry.residual, info.residual),
             converged=carry.converged & (info.result != RESULTS.not_converged),
             iterations=carry.iterations + info.iterations,
@@ -227,11 +337,8 @@ def rollout(
         return new
 
     def emit(carry: _Carry):
-        # a node after a failure is NaN, and so is every derivative through it: the mask
-        # multiplies (a `where` would give such nodes a silent zero gradient)
-        mask = jnp.where(carry.result == RESULTS.successful, 1.0, jnp.nan).astype(dtype)
-        obs = _masked(carry.obs, mask)
-        out = (obs, carry.work * mask, carry.residual, carry.converged, carry.iterations)
+        # the nodes after a failure hold the frozen state here; _assemble makes them NaN
+        out = (carry.obs, carry.work, carry.residual, carry.converged, carry.iterations)
         return carry._replace(
             residual=zero, converged=jnp.ones((), bool), iterations=jnp.zeros((), jnp.int32)
         ), out
@@ -262,21 +369,43 @@ def rollout(
         obs=obs0,
         work=zero,
         abs_work=zero,
+        impulse=impulse0,
         residual=zero,
         converged=jnp.ones((), bool),
         iterations=jnp.zeros((), jnp.int32),
         result=initial_result,
         failure_index=jnp.where(initial_result == RESULTS.successful, n_steps, 0).astype(jnp.int32),
     )
+    # every floating input of the run: a loss reading a failed node gets NaN gradients for all
+    sink = jax.tree_util.tree_leaves((system, integrator, q0, qdot0, controls, t0, h))
+    sink = ([x for x in sink if eqx_inexact(x)], forward_mode)
     seg_body = segment
     if checkpoint == "sqrt" or (isinstance(checkpoint, int) and not isinstance(checkpoint, bool)):
         if stride == 1:  # nested: chunks of ~sqrt(N) (or the given length) steps, each checkpointed
-            return _chunked(step, emit, carry0, n_steps, checkpoint, plan, t0, h, obs0)
+            return _chunked(step, emit, carry0, n_steps, checkpoint, plan, t0, h, obs0, sink)
         seg_body = jax.checkpoint(segment)
     elif stride == 1:
         seg_body = _policy_body(segment, checkpoint)
     carry, outs = jax.lax.scan(seg_body, carry0, jnp.arange(n_seg, dtype=jnp.int32))
-    return _assemble(carry, outs, obs0, plan, t0, h, n_steps)
+    return _assemble(carry, outs, obs0, plan, t0, h, n_steps, sink)
+
+
+def _mobility(system: AbstractSystem, q0: Array) -> Array:
+    """``A`` with ``1/2 P^T A P`` the kinetic energy an impulse ``P`` of the shape forces gives the
+    system at rest at ``q0`` (the constrained inverse mass matrix on the shape coordinates)."""
+    n_s = system.n_shape
+    zero = jnp.zeros(n_s, q0.dtype)
+
+    def response(p):
+        return system.full_acceleration(q0, jnp.zeros_like(q0), p, zero)[0][3:]
+
+    return jax.jacfwd(response)(zero)
+
+
+def _impulse(prev: Array, f: Array, h: Array) -> Array:
+    """The impulse record ``(P, min P, max P, f)`` after one more step (trapezoidal)."""
+    p = prev[0] + 0.5 * h * (prev[3] + f)
+    return jnp.stack([p, jnp.minimum(prev[1], p), jnp.maximum(prev[2], p), f])
 
 
 def _policy_body(body, checkpoint):
@@ -288,7 +417,7 @@ def _policy_body(body, checkpoint):
     return body
 
 
-def _chunked(step, emit, carry0, n_steps, checkpoint, plan, t0, h, obs0):
+def _chunked(step, emit, carry0, n_steps, checkpoint, plan, t0, h, obs0, sink):
     """Save every node, ~sqrt(N) checkpointed chunks of ~sqrt(N) steps (or chunks of the given
     length): O(sqrt N) stored carries for about one extra forward pass."""
     k = max(1, math.isqrt(n_steps - 1) + 1) if checkpoint == "sqrt" else min(int(checkpoint), n_steps)
@@ -307,10 +436,10 @@ def _chunked(step, emit, carry0, n_steps, checkpoint, plan, t0, h, obs0):
     ks = jnp.arange(n_chunks * k, dtype=jnp.int32).reshape(n_chunks, k)
     carry, outs = jax.lax.scan(chunk, carry0, (ks, jnp.asarray(valid_steps).reshape(n_chunks, k)))
     outs = jax.tree_util.tree_map(lambda o: o.reshape((n_chunks * k,) + o.shape[2:])[:n_steps], outs)
-    return _assemble(carry, outs, obs0, plan, t0, h, n_steps)
+    return _assemble(carry, outs, obs0, plan, t0, h, n_steps, sink)
 
 
-def _assemble(carry, outs, obs0, plan, t0, h, n_steps) -> RolloutOutput:
+def _assemble(carry, outs, obs0, plan, t0, h, n_steps, sink) -> RolloutOutput:
     """Prepend node 0 to the scanned outputs and select the saved nodes."""
     dtype = obs0.q.dtype
     first = (obs0, jnp.zeros((), dtype), jnp.zeros((), dtype), jnp.ones((), bool), jnp.zeros((), jnp.int32))
@@ -321,6 +450,11 @@ def _assemble(carry, outs, obs0, plan, t0, h, n_steps) -> RolloutOutput:
         outs = jax.tree_util.tree_map(lambda x: x[sel], outs)
         nodes = nodes[sel]
     obs, work, residual, converged, iterations = outs
+    # a node after the failing step (every node, for invalid inputs) is NaN: failure_mask
+    ok = (carry.result == RESULTS.successful) | (jnp.asarray(nodes, jnp.int32) <= carry.failure_index)
+    ok = ok & (carry.result != RESULTS.invalid_input)
+    sink, forward_mode = sink
+    obs, work = (failure_mask_linear if forward_mode else failure_mask)((obs, work), ok, sink)
     return RolloutOutput(
         t=t0 + h * jnp.asarray(nodes, dtype),
         obs=obs,

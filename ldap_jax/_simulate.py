@@ -75,6 +75,26 @@ class Trajectory(eqx.Module):
         """True where the integration failed (see :attr:`result`)."""
         return self.result != RESULTS.successful
 
+    def filled(self, value: float = 0.0) -> Trajectory:
+        """This trajectory with a failed run's floating arrays (every node, every diagnostic)
+        replaced by ``value``: the double ``where`` that drops failed members from a batched loss
+        with exact, finite gradients for the others (``result`` and ``failure_index`` are kept).
+        Works on a single trajectory and on a batch (``failed`` of shape ``(B,)``)."""
+        failed = self.failed
+
+        def fill(x):
+            if not (eqx.is_array(x) and jnp.issubdtype(x.dtype, jnp.inexact)):
+                return x
+            mask = failed.reshape(failed.shape + (1,) * (x.ndim - failed.ndim))
+            return jnp.where(mask, jnp.asarray(value, x.dtype), x)
+
+        fields = ("q", "qdot", "energy", "work", "momentum", "constraint_residual", "step_residual")
+        return eqx.tree_at(
+            lambda tr: [getattr(tr, f) for f in fields if getattr(tr, f) is not None],
+            self,
+            [fill(getattr(self, f)) for f in fields if getattr(self, f) is not None],
+        )
+
     @property
     def energy_balance(self) -> Float[Array, "*batch M"]:
         """``E_k - E_0 - W_k``: zero for the exact flow (work-energy balance)."""
@@ -177,16 +197,36 @@ def simulate(
             ~sqrt(N) checkpointed chunks: O(sqrt N) states for about one extra forward pass), or
             an integer chunk length.
         divergence: fail with ``RESULTS.diverged`` once ``|E_k - E_0 - W_k|`` exceeds
-            ``divergence * (|E_0| + int |<f, rdot>| dt)`` (the energy balance broken by orders of
-            magnitude: a numerically unstable run); ``None`` (or ``inf``) disables it. Checked at
+            ``divergence * (|E_0| + min(int |<f, rdot>| dt, E_f))`` (the energy balance broken by
+            orders of magnitude: a numerically unstable run); ``None`` (or ``inf``) disables it.
+            ``E_f = 1/2 P^T M^-1 P`` is the energy that the forces' impulse (its range ``P`` over
+            the run, from the controls' ``impulse_spread``; accumulated along the nodes for a
+            policy) gives the system at rest at ``q0``: a scale set by the inputs, which a
+            diverging run cannot inflate as it inflates its own absolute work. Checked at
             every node when ``diagnostics`` is on (with ``diagnostics=False`` only non-finite
             states are caught). Independently, a non-finite energy, work, momentum or
             constraint residual at any node fails the run with ``RESULTS.nonfinite``.
-        throw: raise (inside jit, via ``eqx.error_if``) if the integration failed.
+        throw: raise (inside jit, via ``eqx.error_if``) if the integration failed, with the
+            failure's message. Under ``jax.vmap`` it raises when any member failed and does not
+            say which one (the check runs inside the batched program): run without ``throw`` and
+            read ``jnp.nonzero(traj.failed)`` to find the members.
         check_constraints: check that ``qdot0`` satisfies the constraints.
 
     Returns:
         :class:`Trajectory`.
+
+    Failed runs and gradients: a loss that reads a failed run (its NaN nodes) gets NaN gradients
+    with respect to every input of that run, whether it failed at its first step or later. To
+    leave failed members out of a batched loss, mask their *outputs* with a double ``where``,
+    ``q = jnp.where(traj.failed, 0.0, traj.q)`` (or :meth:`Trajectory.filled`), before the loss
+    reads them: the failed members then contribute exact zeros, and the healthy members'
+    gradients are those of the batch without them. Masking only the loss
+    (``jnp.where(traj.failed, 0.0, loss(traj.q))``) is not enough: the loss's own derivative at
+    the NaN nodes is NaN (``0 * NaN``), in any JAX program. In forward mode (``jax.jacfwd``,
+    ``jax.hessian``, applied to a function that calls ``simulate`` directly or under ``jax.jit``
+    inside them) the mask is linear: a loss linear in a failed node gets 0 from it (its value is
+    NaN). A forward-mode transformation of an already jitted function that calls ``simulate``
+    (``jax.jacfwd(jax.jit(f))``) is not supported: apply ``jax.jit`` outside it.
 
     Raises:
         TypeError: a system, controls or integrator of the wrong type.
@@ -209,6 +249,7 @@ def simulate(
     controls, q0, qdot0 = check_problem(system, controls, q0, qdot0, policies=True, caller="simulate")
     if isinstance(controls, AbstractPolicy):
         _check_policy(controls, q0, qdot0)
+        controls = _lift_closure(controls, q0, qdot0)
     n_steps = check_positive_int("n_steps", n_steps)
     t_final, t0 = check_scalar("t_final", t_final), check_scalar("t0", t0)
     plan = check_save(save, n_steps)
@@ -217,6 +258,7 @@ def simulate(
         divergence = check_positive_number("divergence", divergence, allow_inf=True)
     raise_if_concrete(system, integrator, q0, qdot0, controls, t0, t_final, check_constraints)
     settings = dict(
+        forward_mode=_forward_mode((system, integrator, q0, qdot0, controls, t0, t_final)),
         n_steps=n_steps,
         plan=plan,
         diagnostics=bool(diagnostics),
@@ -238,6 +280,37 @@ def simulate(
         integrator,
         **settings,
     )
+
+
+def _forward_mode(tree: Any) -> bool:
+    """True when an input is being differentiated in forward mode (``jax.jvp``, ``jax.jacfwd``,
+    ``jax.hessian``: a JVP tracer somewhere in a leaf's stack of tracers). The failed nodes are then
+    masked without the custom VJP, which has no forward mode. (A forward-mode transformation
+    outside a ``jax.jit`` that holds the call is not seen, and fails with JAX's message.)"""
+    for x in jax.tree_util.tree_leaves(tree):
+        for _ in range(64):
+            if not isinstance(x, jax.core.Tracer):
+                break
+            if type(x).__name__ == "JVPTracer":
+                return True
+            x = getattr(x, "primal", getattr(x, "val", None))
+    return False
+
+
+def _lift_closure(policy: AbstractPolicy, q0: Array, qdot0: Array) -> AbstractPolicy:
+    """A :class:`Policy` of a plain function that closes over traced values (a gain captured under
+    the caller's ``jit`` or ``grad``), with those values made leaves of the policy
+    (``eqx.filter_closure_convert``): hidden in the closure, the entry points took the policy for
+    a constant and checked or compiled it as one (``TracerBoolConversionError`` under ``jit``, a
+    leaked tracer under ``grad``). Other policies are returned as they are (a converted policy
+    is a new object at every call, so it would compile anew every call)."""
+    if not isinstance(policy, Policy) or isinstance(policy.fn, eqx.Module):
+        return policy
+    t = jnp.zeros((), q0.dtype)
+    converted = eqx.filter_closure_convert(policy.fn, t, q0, qdot0)
+    if not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(converted)):
+        return policy
+    return Policy(converted, policy.n_channels)
 
 
 def _check_policy(policy: AbstractPolicy, q0: Array, qdot0: Array) -> None:
@@ -281,6 +354,7 @@ def _simulate(
     divergence,
     throw,
     check_constraints,
+    forward_mode,
 ):
     dtype = jnp.result_type(q0, qdot0)
     q0, qdot0 = jnp.asarray(q0, dtype), jnp.asarray(qdot0, dtype)
@@ -304,6 +378,7 @@ def _simulate(
         checkpoint=checkpoint,
         divergence=divergence,
         initial_result=initial,
+        forward_mode=forward_mode,
     )
     obs = out.obs
     traj = Trajectory(

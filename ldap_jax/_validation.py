@@ -196,7 +196,12 @@ def raise_if_concrete(system, integrator, q0, qdot0, controls, t0, t_final, chec
             )
 
     if check_constraints and is_concrete((system, q0, qdot0, controls, t0)):
-        finite_c0, viol, tol = known_initial_violation(system, q0, qdot0, controls, t0)
+        try:
+            finite_c0, viol, tol = known_initial_violation(system, q0, qdot0, controls, t0)
+        except jax.errors.ConcretizationTypeError:
+            # a policy that closes over a traced value (a plain function capturing a gain under
+            # jit or grad): its leaves look known but its output is not; checked in the run
+            return
         if not finite_c0:  # a policy's output at t0 (open-loop controls' data were checked above)
             raise ValueError(
                 f"'controls' must be finite: their value at t0 = {float(np.asarray(t0)):g} is not "
@@ -249,7 +254,8 @@ def input_result(
 ) -> RESULTS:
     """The value checks on traced values, as a result code (``invalid_input`` or ``successful``):
     finite times with ``t_final > t0``, a finite initial state, finite controls (every floating
-    leaf) passing their ``value_checks``, the system's parameter checks, ``alpha`` in [0, 1] and,
+    leaf) passing their ``value_checks``, the system's parameter checks, ``alpha`` in [0, 1] (and
+    ``alpha = 1/2`` for a composition, ``RDP(order=4 | 6)``) and,
     with ``check_constraints``,
     ``qdot0`` on the constraints. ``t_final=None`` skips the time check."""
     ok = jnp.isfinite(t0)
@@ -263,6 +269,8 @@ def input_result(
     alpha = getattr(integrator, "alpha", None)
     if alpha is not None:
         ok = ok & (alpha >= 0) & (alpha <= 1)
+        if getattr(integrator, "order", 2) > 2:  # a composition (RDP(order=4 | 6)) of symmetric steps
+            ok = ok & (alpha == 0.5)
     if check_constraints:
         ok = ok & (_constraint_violation(system, q0, qdot0) <= constraint_tolerance(qdot0))
     return RESULTS.where(ok, RESULTS.successful, RESULTS.invalid_input)

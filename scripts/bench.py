@@ -189,11 +189,9 @@ def headline(cfg: Config, log) -> list[dict]:
 C_SOURCE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "c", "rdp_snakeboard.c")
 
 
-def compiled_c(cfg: Config, headline_rows, log) -> list[dict]:
-    """The same snakeboard RDP rollout (alpha = 1/2, exp, positions only) in C, compiled here with
-    ``cc -O3 -march=native -ffast-math -fopenmp``: a scalar loop per trajectory and a loop
-    vectorised across trajectories, on one thread and on every core. Same maneuvers and initial
-    momenta as ours; the positions must agree with ``lj.simulate`` to round-off."""
+def _c_library(log):
+    """Compile ``scripts/c/rdp_snakeboard.c`` (``cc -O3 -march=native -fopenmp``, no
+    ``-ffast-math``: it would change the arithmetic); ``None`` without a C compiler."""
     import ctypes
     import shutil
     import subprocess
@@ -202,25 +200,21 @@ def compiled_c(cfg: Config, headline_rows, log) -> list[dict]:
     cc = shutil.which(os.environ.get("CC", "cc")) or shutil.which("gcc")
     if cc is None:
         log("  no C compiler: skipped")
-        return []
+        return None
     lib_path = os.path.join(tempfile.mkdtemp(prefix="ldap_jax_bench_"), "librdp.so")
-    subprocess.run(
-        [
-            cc,
-            "-O3",
-            "-march=native",
-            "-ffast-math",
-            "-fopenmp",
-            "-shared",
-            "-fPIC",
-            C_SOURCE,
-            "-o",
-            lib_path,
-            "-lm",
-        ],
-        check=True,
-    )
-    lib = ctypes.CDLL(lib_path)
+    flags = ["-O3", "-march=native", "-fopenmp", "-shared", "-fPIC"]
+    subprocess.run([cc, *flags, C_SOURCE, "-o", lib_path, "-lm"], check=True)
+    return ctypes.CDLL(lib_path)
+
+
+def _c_setup(cfg: Config, log):
+    """The compiled C library and ``call_args(q)`` for the snakeboard maneuvers of the headline
+    (B x N, 10 s): the same initial momenta as ours. ``None`` without a C compiler."""
+    import ctypes
+
+    lib = _c_library(log)
+    if lib is None:
+        return None
     system = SYSTEMS["snakeboard"]
     b, n, t_final = cfg.batch, cfg.steps, 10.0
     h = t_final / n
@@ -233,49 +227,171 @@ def compiled_c(cfg: Config, headline_rows, log) -> list[dict]:
         np.float64,
     )
     ctl_np = np.ascontiguousarray(np.stack([ctl.amplitude, ctl.frequency, ctl.phase], 1), np.float64)
-    q = np.zeros((b, n + 1, 5))
     ptr, dbl = ctypes.POINTER(ctypes.c_double), ctypes.c_double
-    call_args = (
-        ctypes.c_int(b),
-        ctypes.c_int(n),
-        ctypes.c_int(ctl_np.shape[-1]),
-        dbl(h),
-        *(dbl(float(getattr(system, k))) for k in ("m", "l", "I", "J")),
-        init.ctypes.data_as(ptr),
-        ctl_np.ctypes.data_as(ptr),
-        q.ctypes.data_as(ptr),
-    )
+
+    def call_args(q):
+        return (
+            ctypes.c_int(b),
+            ctypes.c_int(n),
+            ctypes.c_int(ctl_np.shape[-1]),
+            dbl(h),
+            *(dbl(float(getattr(system, k))) for k in ("m", "l", "I", "J")),
+            init.ctypes.data_as(ptr),
+            ctl_np.ctypes.data_as(ptr),
+            q.ctypes.data_as(ptr),
+        )
+
+    return lib, call_args, (q0, qdot0, ctl)
+
+
+def compiled_c(cfg: Config, headline_rows, log) -> list[dict]:
+    """The same snakeboard RDP rollout (alpha = 1/2, exp) in scalar C (``scripts/c``), compiled
+    here at ``-O3 -march=native`` without fast-math: a loop over maneuvers with the steps inside,
+    the model's constants hoisted, one sincos per angle, with glibc's ``sin``/``sincos`` and with
+    the inlined polynomial kernels that ldap_jax uses. Every node is checked against
+    ``lj.simulate`` (round-off); the positions-only variants (the final node, as ``save="final"``)
+    are timed on one thread and on every core: ns per step (wall) and, on one thread, the
+    thread's CPU time (less inflated when other processes share the cores)."""
+    setup = _c_setup(cfg, log)
+    if setup is None:
+        return []
+    lib, call_args, (q0, qdot0, ctl) = setup
+    system = SYSTEMS["snakeboard"]
+    b, n, t_final = cfg.batch, cfg.steps, 10.0
     ours = np.asarray(rollout_fn(system, lj.RDP(), n, t_final, save="all")(q0, qdot0, ctl))
     best_ours = max(r["steps_per_s_q"] for r in headline_rows) if headline_rows else None
     rows = []
-    for fn, label in (
-        ("rollout", "scalar loop per trajectory"),
-        ("rollout_simd", "vectorised across trajectories"),
-    ):
+    for sc, label in (("libm", "glibc sin/sincos"), ("poly", "inlined polynomial sincos")):
+        q_all = np.zeros((b, n + 1, 5))
+        lib.set_threads(1)
+        getattr(lib, f"rollout_{sc}")(*call_args(q_all))
+        diff = float(np.max(np.abs(q_all - ours)))
+        f = getattr(lib, f"rollout_final_{sc}")
+        q = np.zeros((b, 5))
         for threads in sorted({1, os.cpu_count() or 1}):
             lib.set_threads(threads)
-            f = getattr(lib, fn)
-            f(*call_args)
-            diff = float(np.max(np.abs(q - ours)))
-            wall = []
+            f(*call_args(q))
+            wall, cpu = [], []
             for _ in range(cfg.repeats):
-                t = time.perf_counter()
-                f(*call_args)
+                t, c = time.perf_counter(), time.thread_time()
+                f(*call_args(q))
                 wall.append(time.perf_counter() - t)
+                cpu.append(time.thread_time() - c)
             row = dict(
-                variant=label,
+                variant=f"scalar, {label}",
                 threads=threads,
                 B=b,
                 N=n,
                 steps_per_s=b * n / min(wall),
+                ns_per_step=min(wall) / (b * n) * 1e9,
+                cpu_ns_per_step=min(cpu) / (b * n) * 1e9 if threads == 1 else None,
                 max_abs_diff_vs_ours=diff,
             )
             row["ours_best_over_c"] = best_ours / row["steps_per_s"] if best_ours else None
             rows.append(row)
             log(
-                f"  C {label}, {threads} thread(s): {row['steps_per_s']:.3g} steps/s "
-                f"(|q - ours| <= {diff:.1e})"
+                f"  C {label}, {threads} thread(s): {row['ns_per_step']:.1f} ns/step"
+                + (f" (thread CPU {row['cpu_ns_per_step']:.1f})" if threads == 1 else "")
+                + f" (|q - ours| <= {diff:.1e})"
             )
+    return rows
+
+
+#: substeps per composed step (the compositions' base steps: C's cost of order p is this many of
+#: its order-2 steps)
+SUBSTEPS = {2: 1, 4: 5, 6: 9}
+
+
+def ours_over_c(cfg: Config, log) -> list[dict]:
+    """The positions-only rollout (snakeboard, ``save="final", diagnostics=False``, B x N) for
+    RDP orders 2, 4 and 6, as a user writes it, ``jax.jit(jax.vmap(...))`` (XLA's default
+    options), and with ``compiler_options=lj.compiler_options()``; on one device against the C
+    rollout on one thread, and sharded over every device against C on every core. Ours and C run
+    in alternating rounds (paired, so that a change of load hits both). C's time per composed step
+    is ``SUBSTEPS[order]`` times its order-2 step (inlined polynomial sincos, the faster variant).
+    Reported: wall and CPU time per step (CPU: the process's, JAX's threads included; C on one
+    thread: the thread's) and their ratios ours/C, of the minima over the rounds."""
+    setup = _c_setup(cfg, log)
+    if setup is None:
+        return []
+    lib, call_args, data = setup
+    c_fn = lib.rollout_final_poly
+    q_c = np.zeros((cfg.batch, 5))
+    system = SYSTEMS["snakeboard"]
+    b, n = cfg.batch, cfg.steps
+    layouts = [("1 device", data, 1)]
+    if jax.device_count() > 1:
+        layouts.append(
+            (
+                f"sharded over {jax.device_count()} devices",
+                study.shard_batch(data, study.device_mesh())[0],
+                os.cpu_count() or 1,
+            )
+        )
+    opts = lj.compiler_options()
+
+    def run_c(threads):
+        lib.set_threads(threads)
+        t, c = time.perf_counter(), time.thread_time() if threads == 1 else time.process_time()
+        c_fn(*call_args(q_c))
+        cpu = (time.thread_time() if threads == 1 else time.process_time()) - c
+        return time.perf_counter() - t, cpu
+
+    rows = []
+    for order in (2, 4, 6):
+        integ = lj.RDP(order=order)
+
+        def one(q0, qdot0, ctl, integ=integ):
+            traj = lj.simulate(
+                system,
+                q0,
+                qdot0,
+                ctl,
+                t_final=10.0,
+                n_steps=n,
+                integrator=integ,
+                check_constraints=False,
+                save="final",
+                diagnostics=False,
+            )
+            return traj.q
+
+        fns = {"plain jax.jit": jax.jit(jax.vmap(one))}
+        if opts is not None:
+            fns["lj.compiler_options()"] = jax.jit(jax.vmap(one), compiler_options=opts)
+        for layout, args, threads in layouts:
+            for f in fns.values():
+                jax.block_until_ready(f(*args))
+            best = {k: [float("inf"), float("inf")] for k in (*fns, "C")}
+            for _ in range(cfg.repeats):  # alternating rounds: ours (each compile), then C
+                for k, f in fns.items():
+                    t, c = time.perf_counter(), time.process_time()
+                    jax.block_until_ready(f(*args))
+                    wall, cpu = time.perf_counter() - t, time.process_time() - c
+                    best[k] = [min(best[k][0], wall), min(best[k][1], cpu)]
+                wall, cpu = run_c(threads)
+                best["C"] = [min(best["C"][0], wall), min(best["C"][1], cpu)]
+            c_ns = [x / (b * n) * 1e9 * SUBSTEPS[order] for x in best["C"]]
+            for k in fns:
+                ns = [x / (b * n) * 1e9 for x in best[k]]
+                row = dict(
+                    order=order,
+                    layout=layout,
+                    compile=k,
+                    B=b,
+                    N=n,
+                    ns_per_step=ns[0],
+                    cpu_ns_per_step=ns[1],
+                    c_ns_per_step=c_ns[0],
+                    c_cpu_ns_per_step=c_ns[1],
+                    ours_over_c=ns[0] / c_ns[0],
+                    ours_over_c_cpu=ns[1] / c_ns[1],
+                )
+                rows.append(row)
+                log(
+                    f"  RDP{order} {layout}, {k}: {ns[0]:.1f} ns/step (CPU {ns[1]:.1f}), C {c_ns[0]:.1f} "
+                    f"(CPU {c_ns[1]:.1f}): ours/C {row['ours_over_c']:.2f} (CPU {row['ours_over_c_cpu']:.2f})"
+                )
     return rows
 
 
@@ -758,13 +874,33 @@ def write_markdown(path, res):
             "",
             "## Against compiled C (same step, same maneuvers; positions only)",
             "",
-            "| C variant | threads | steps/s | max abs diff vs ours | ours (best) / C |",
-            "|---|---|---|---|---|",
+            "C: `-O3 -march=native`, no fast-math. ns/step: wall (min of repeats); CPU: the thread's CPU "
+            "time (one thread).",
+            "",
+            "| C variant | threads | ns/step | CPU ns/step | steps/s | max abs diff vs ours "
+            "| ours (best) / C, throughput |",
+            "|---|---|---|---|---|---|---|",
         ]
         L += [
-            f"| {r['variant']} | {r['threads']} | {r['steps_per_s']:.3g} | {r['max_abs_diff_vs_ours']:.1e} "
-            f"| {_fmt(r['ours_best_over_c'], '.2f')} |"
+            f"| {r['variant']} | {r['threads']} | {r['ns_per_step']:.1f} "
+            f"| {_fmt(r['cpu_ns_per_step'], '.1f')} | {r['steps_per_s']:.3g} "
+            f"| {r['max_abs_diff_vs_ours']:.1e} | {_fmt(r['ours_best_over_c'], '.2f')} |"
             for r in res["compiled_c"]
+        ]
+    if res.get("ours_over_c"):
+        L += [
+            "",
+            "## Ours / C, positions only (time per composed step; C = substeps x its order-2 step)",
+            "",
+            "Ours and C in alternating rounds; CPU: the process's CPU time (C on one thread: the thread's).",
+            "",
+            "| order | layout | compiled with | ns/step | C ns/step | ours / C | CPU: ours / C |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        L += [
+            f"| {r['order']} | {r['layout']} | {r['compile']} | {r['ns_per_step']:.1f} | "
+            f"{r['c_ns_per_step']:.1f} | {r['ours_over_c']:.2f} | {r['ours_over_c_cpu']:.2f} |"
+            for r in res["ours_over_c"]
         ]
     L += _section(
         "Forward throughput (positions only, batched)",
@@ -936,6 +1072,7 @@ def plot(path, res):
 SECTIONS = (
     "headline",
     "compiled_c",
+    "ours_over_c",
     "throughput",
     "wp_10s",
     "wp_600s",
@@ -980,6 +1117,7 @@ def main(argv=None) -> int:
     runs = {
         "headline": lambda: headline(cfg, log),
         "compiled_c": lambda: compiled_c(cfg, res.get("headline", []), log),
+        "ours_over_c": lambda: ours_over_c(cfg, log),
         "throughput": lambda: throughput(cfg, log),
         "wp_10s": lambda: work_precision(cfg, 10.0, cfg.wp_steps_10s, log),
         "wp_600s": lambda: work_precision(cfg, 600.0, cfg.wp_steps_600s, log),

@@ -665,6 +665,239 @@ def test_divergence_is_not_success():
     assert loose.result == R.successful and float(np.max(np.abs(np.asarray(loose.q)[:, 2]))) > 1e12
 
 
+# ======================================================= failures that were silent (issue 47)
+Q0_SINGULAR = jnp.array([0.0, 0.0, 0.0, 0.0, np.pi / 2])  # cos(phi) = 0: fails at step 0
+
+#: name -> keyword arguments of simulate: each fails at step 0 (a loss reading it must get NaN)
+FIRST_STEP = {
+    "default": {},
+    "rk4 final sqrt": dict(integrator=lj.RK4(), save="final", checkpoint="sqrt"),
+    "order 4": dict(integrator=lj.RDP(order=4)),
+    "no diagnostics": dict(diagnostics=False, save="final"),
+}
+
+
+def _first_step_loss(amp, tf=TF, m=1.0, q0=Q0_SINGULAR, **kw):
+    sb = lj.Snakeboard(m=m, l=0.5, I=0.05, J=0.02)
+    traj = lj.simulate(sb, q0, Z5, lj.Sinusoids(amp, FREQ, PHASE), t_final=tf, n_steps=N, **kw)
+    return jnp.sum(traj.q[-1] ** 2), traj
+
+
+@pytest.mark.xdist_group("faults_issue47")
+@pytest.mark.parametrize("name", list(FIRST_STEP))
+def test_gradient_through_a_first_step_failure_is_nan(name):
+    """A run that fails at step 0 froze at q0, which the controls do not move: the gradient was
+    an exact 0. Now a loss that reads a failed run gets NaN, eagerly, under jit and for a member
+    of a vmapped batch (whose healthy member keeps a finite gradient)."""
+    kw = FIRST_STEP[name]
+    _, traj = _first_step_loss(AMP, **kw)
+    assert traj.result == R.singular and int(traj.failure_index) == 0
+    grad = jax.grad(lambda a: _first_step_loss(a, **kw)[0])
+    assert np.all(np.isnan(np.asarray(grad(AMP))))
+    assert np.all(np.isnan(np.asarray(jax.jit(grad)(AMP))))
+    q0s = jnp.stack([Z5, Q0_SINGULAR])
+    batch = jax.grad(
+        lambda a: jnp.sum(jax.vmap(lambda q: _first_step_loss(a[0] + 0 * a[1], q0=q, **kw)[0])(q0s))
+    )
+    both = jax.vmap(lambda a, q: jax.grad(lambda aa: _first_step_loss(aa, q0=q, **kw)[0])(a))(
+        jnp.stack([AMP, AMP]), q0s
+    )
+    both = np.asarray(both)
+    assert np.all(np.isfinite(both[0])) and np.any(both[0] != 0) and np.all(np.isnan(both[1]))
+    assert np.all(np.isnan(np.asarray(batch(jnp.stack([AMP, AMP])))))
+
+
+@pytest.mark.xdist_group("faults_issue47")
+def test_gradient_through_a_first_step_failure_is_nan_for_times_and_parameters():
+    """With respect to ``t_final`` (eagerly), and to a traced invalid mass under ``jit(grad)``."""
+    g_tf = jax.grad(lambda tf: _first_step_loss(AMP, tf=tf)[0])(TF)
+    assert np.isnan(float(g_tf))
+    g_m = jax.jit(jax.grad(lambda m: _first_step_loss(AMP, m=m, q0=Z5)[0]))(-1.0)
+    assert np.isnan(float(g_m))
+    # eagerly the bad mass is known: a clear error naming it (was TracerArrayConversionError)
+    with pytest.raises(ValueError, match="'m' must be positive"):
+        jax.grad(lambda m: _first_step_loss(AMP, m=m, q0=Z5)[0])(-1.0)
+
+
+#: per-member offsets of the shared amplitude: member 1 crosses cos(phi) = 0 (SINGULAR_AMP)
+DELTAS = jnp.stack([jnp.zeros((2, 1)), SINGULAR_AMP - AMP, jnp.array([[0.05], [0.0]])])
+
+
+def _masked_member(params, delta, q0, fill, **kw):
+    m, amp = params
+    sb = lj.Snakeboard(m=m, l=0.5, I=0.05, J=0.02)
+    traj = lj.simulate(sb, q0, Z5, lj.Sinusoids(amp + delta, FREQ, PHASE), t_final=TF, n_steps=N, **kw)
+    if fill:
+        traj = traj.filled()
+        q, e = traj.q, traj.energy
+    else:
+        q, e = jnp.where(traj.failed, 0.0, traj.q), jnp.where(traj.failed, 0.0, traj.energy)
+    return jnp.sum(q[-1] ** 2) + jnp.sum(e), traj.failed
+
+
+@pytest.mark.xdist_group("faults_issue47")
+@pytest.mark.parametrize("where", ["step 0", "later"])
+@pytest.mark.parametrize("fill", [False, True])
+def test_masked_failed_member_leaves_healthy_gradients_exact(where, fill):
+    """A batched loss that masks its failed member out (double ``where`` on the outputs, or
+    ``Trajectory.filled``): the shared parameters' gradient equals that of the batch without the
+    failed member (it was NaN for the whole batch), for a failure at step 0 or later."""
+    q0s = jnp.stack([Z5, Q0_SINGULAR if where == "step 0" else Z5, Z5])
+    deltas = DELTAS.at[1].set(0.0) if where == "step 0" else DELTAS
+    params = (jnp.asarray(1.0), AMP)
+
+    def loss(p, d, q):
+        return jnp.sum(jax.vmap(lambda dd, qq: _masked_member(p, dd, qq, fill)[0])(d, q))
+
+    failed = jax.vmap(lambda dd, qq: _masked_member(params, dd, qq, fill)[1])(deltas, q0s)
+    assert np.asarray(failed).tolist() == [False, True, False]
+    full = jax.jit(jax.grad(loss))(params, deltas, q0s)
+    healthy = jax.grad(loss)(params, deltas[::2], q0s[::2])
+    for a, b in zip(full, healthy):
+        assert np.all(np.isfinite(np.asarray(a)))
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-12)
+
+
+def test_trajectory_filled_keeps_the_result():
+    _, traj = _first_step_loss(AMP)
+    filled = traj.filled(-1.0)
+    assert filled.result == R.singular and int(filled.failure_index) == 0
+    assert np.all(np.asarray(filled.q) == -1.0) and np.all(np.asarray(filled.energy) == -1.0)
+    good = lj.simulate(SB, Z5, Z5, CTL, t_final=TF, n_steps=N)
+    np.testing.assert_array_equal(np.asarray(good.filled().q), np.asarray(good.q))
+
+
+@pytest.mark.xdist_group("faults_divergence")
+@pytest.mark.parametrize("integrator", ["gni folded", "rk4"])
+def test_car_blow_up_at_a_huge_step_is_diverged(integrator):
+    """The car at h = 6 s (t_final = 600, N = 100; the motion's periods are a few seconds): the
+    scale of the divergence test was ``|E_0| + int |P| dt``, and a blown-up run's absolute work
+    grows with it, so runs ending 100x off the true path (positions of 1.8e3 m where the true
+    motion stays within 11 m) were ``successful``. Now the scale is capped by the energy the
+    controls' impulse can give the car, a value of the inputs: these runs end ``diverged``,
+    eagerly, under jit and as members of a batch."""
+    integ = lj.GNI(variant="folded") if integrator == "gni folded" else lj.RK4()
+    members = [8, 10] if integrator == "gni folded" else [0, 6, 8]
+    q0, qd0, ctl = study.sample_maneuvers(CAR, 16, 0)
+
+    def run(a, b, c):
+        traj = lj.simulate(CAR, a, b, c, t_final=600.0, n_steps=100, integrator=integ)
+        return traj.result._value
+
+    batch = np.asarray(jax.jit(jax.vmap(run))(q0, qd0, ctl))
+    for i in members:
+        one = jax.tree_util.tree_map(lambda x: x[i], (q0, qd0, ctl))
+        assert batch[i] == code(R.diverged)
+        assert code(run(*one)) == code(R.diverged) == code(jax.jit(run)(*one))
+    # the same maneuvers at a step that resolves them stay successful
+    fine = jax.jit(
+        jax.vmap(
+            lambda a, b, c: (
+                lj.simulate(
+                    CAR, a, b, c, t_final=600.0, n_steps=6000, save="final", integrator=integ
+                ).result._value
+            )
+        )
+    )
+    assert np.all(np.asarray(fine(q0, qd0, ctl)) == code(R.successful))
+
+
+@pytest.mark.xdist_group("faults_issue47")
+def test_composition_with_a_traced_alpha_other_than_half_is_invalid():
+    """``RDP(order=4, alpha=a)`` composes symmetric steps: eagerly ``a != 1/2`` raises, and a
+    traced one was run (order 1.03, ``successful``). Now it is ``invalid_input``."""
+    with pytest.raises(ValueError, match="alpha = 1/2"):
+        lj.RDP(order=4, alpha=0.3)
+
+    def run(a):
+        traj = lj.simulate(SB, Z5, Z5, CTL, t_final=TF, n_steps=N, integrator=lj.RDP(order=4, alpha=a))
+        return traj.result._value, jnp.all(jnp.isnan(traj.q))
+
+    res, nan = (np.asarray(x) for x in jax.vmap(run)(jnp.array([0.5, 0.3])))
+    assert res.tolist() == [code(R.successful), code(R.invalid_input)] and nan.tolist() == [False, True]
+    assert code(jax.jit(run)(0.3)[0]) == code(R.invalid_input)
+
+
+@pytest.mark.xdist_group("faults_issue47")
+def test_discretize_flags_a_traced_nonpositive_step():
+    """``lj.discretize`` under ``jit`` took a traced ``h <= 0`` and reported ``successful``."""
+
+    @jax.jit
+    def step(h):
+        dyn = lj.discretize(CAR, lj.RDP(), h=h)
+        x0 = dyn.init(Z5, Z5, jnp.ones(2))
+        x1, info = dyn.step_with_info(x0, jnp.ones(2), jnp.ones(2))
+        return x1, info.result._value
+
+    x1, res = step(0.1)
+    assert code(res) == code(R.successful) and np.all(np.isfinite(np.asarray(x1)))
+    for bad in (-0.1, 0.0, NAN):
+        x1, res = step(bad)
+        assert code(res) == code(R.invalid_input) and np.all(np.isnan(np.asarray(x1)))
+    with pytest.raises(ValueError, match="'h'"):
+        lj.discretize(CAR, lj.RDP(), h=-0.1)
+
+
+@pytest.mark.xdist_group("faults_issue47")
+def test_save_indices_must_be_integers_and_may_be_jax_arrays():
+    with pytest.raises(ValueError, match="'save'.*integers"):
+        lj.simulate(SB, Z5, Z5, CTL, t_final=TF, n_steps=N, save=[0.5, 10])
+    a = lj.simulate(SB, Z5, Z5, CTL, t_final=TF, n_steps=N, save=jnp.array([0, 5, 10]))
+    b = lj.simulate(SB, Z5, Z5, CTL, t_final=TF, n_steps=N, save=np.array([0, 5, 10]))
+    np.testing.assert_array_equal(np.asarray(a.q), np.asarray(b.q))
+    assert a.q.shape == (3, 5)
+
+
+def _policy_loss(k):
+    pol = lambda t, q, qd: jnp.stack([1.0 - k * qd[3], 0.1 * jnp.cos(t)])  # noqa: E731
+    traj = lj.simulate(CAR, Z5, Z5, pol, t_final=2.0, n_steps=20)
+    return jnp.sum(traj.q[-1] ** 2)
+
+
+@pytest.mark.xdist_group("faults_issue47")
+def test_plain_function_policy_with_a_captured_gain_under_jit_and_grad():
+    """A plain-function policy closing over a gain: ``jit`` over the gain raised
+    ``TracerBoolConversionError`` (the initial check took the policy for a constant), ``grad`` a
+    leaked tracer. Now both work and agree with the eager values and finite differences."""
+    value = float(_policy_loss(0.5))
+    assert float(jax.jit(_policy_loss)(0.5)) == pytest.approx(value, rel=1e-12)
+    g = float(jax.grad(_policy_loss)(0.5))
+    assert float(jax.jit(jax.grad(_policy_loss))(0.5)) == pytest.approx(g, rel=1e-10)
+    eps = 1e-6
+    fd = (float(_policy_loss(0.5 + eps)) - float(_policy_loss(0.5 - eps))) / (2 * eps)
+    assert g == pytest.approx(fd, rel=1e-6) and g != 0
+
+
+@pytest.mark.xdist_group("faults_issue47")
+def test_throw_under_vmap_raises_with_the_failures_message():
+    """Documented: under vmap, ``throw=True`` raises when any member fails, with the failure's
+    message (it cannot name the member from inside the batched program)."""
+
+    def run(amp):
+        return lj.simulate(SB, Z5, Z5, lj.Sinusoids(amp, FREQ, PHASE), t_final=TF, n_steps=N, throw=True).q
+
+    with pytest.raises(Exception, match="singular configuration"):
+        jax.vmap(run)(jnp.stack([AMP, SINGULAR_AMP]))
+    assert "does not\n            say which one" in lj.simulate.__doc__
+
+
+@pytest.mark.xdist_group("faults_issue47")
+def test_forward_mode_through_simulate():
+    """The custom VJP that masks failed nodes has no forward mode: simulate sees a forward-mode
+    transformation of its inputs and masks them linearly instead. ``jacfwd`` equals ``jacrev``, a
+    Hessian compiles, and a step-0 failure gives NaN in forward mode too."""
+
+    def f(a, q0=Z5):
+        return _first_step_loss(a, q0=q0)[1].q[-1]
+
+    np.testing.assert_allclose(
+        np.asarray(jax.jacfwd(f)(AMP)), np.asarray(jax.jacrev(f)(AMP)), rtol=1e-10, atol=1e-12
+    )
+    hess = jax.jit(jax.hessian(lambda a: jnp.sum(f(a) ** 2)))(AMP)
+    assert hess.shape == (2, 1, 2, 1) and np.all(np.isfinite(np.asarray(hess)))
+    assert np.all(np.isnan(np.asarray(jax.jacfwd(lambda a: _first_step_loss(a)[0])(AMP))))
+
+
 # ===================================================================================== control
 PARK = lc.parallel_park(n_steps=N)
 GAIT = lc.forward_gait(n_steps=N)

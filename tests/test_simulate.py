@@ -375,11 +375,13 @@ def test_failure_does_not_poison_gradients_of_other_batch_members():
     assert not bool(failed[0]) and bool(failed[1]) and np.isfinite(float(x[0])) and np.isnan(float(x[1]))
     g = jax.jit(jax.grad(lambda a: jax.vmap(final_x)(a, freq, phase)[0][0]))(amp)
     # the good member's gradient is finite (here exactly 0: without steering the board cannot move,
-    # whatever the rotor does); the failed member's parameters get NaN (a gradient through a failed
-    # run is never a silent zero), even where the loss ignores them
+    # whatever the rotor does); a loss that ignores the failed member gives its parameters an exact
+    # zero (nothing of it is read), and one that reads it gives them NaN (never a silent zero)
     g = np.asarray(g)
     assert np.all(np.isfinite(g[0]))
-    assert np.all(np.isnan(g[1]))
+    assert np.all(g[1] == 0)
+    g = np.asarray(jax.jit(jax.grad(lambda a: jnp.sum(jax.vmap(final_x)(a, freq, phase)[0])))(amp))
+    assert np.all(np.isfinite(g[0])) and np.all(np.isnan(g[1]))
 
 
 def test_documented_sequence_inputs():

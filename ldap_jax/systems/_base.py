@@ -69,7 +69,13 @@ def concrete(x) -> bool:
 
 
 def _number(x) -> str:
-    """A parameter's value for an error message: ``0.1``, ``[0.02, -1]``."""
+    """A parameter's value for an error message: ``0.1``, ``[0.02, -1]`` (the value under an eager
+    ``jax.grad``, whose tracer holds one; ``traced`` when there is none)."""
+    if isinstance(x, jax.core.Tracer):
+        with jax.ensure_compile_time_eval():
+            x = jax.lax.stop_gradient(x)
+        if isinstance(x, jax.core.Tracer):
+            return "(traced)"
     return np.array2string(np.asarray(x), separator=", ", formatter={"float_kind": lambda v: f"{v:.6g}"})
 
 

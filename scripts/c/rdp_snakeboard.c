@@ -1,15 +1,25 @@
 /* The snakeboard's closed-form RDP step (alpha = 1/2, exp retraction; docs/integrators.md) in C,
  * for scripts/bench.py: the compiled-code baseline that ldap_jax's closed-form kernel is timed
- * against. Same arithmetic as Snakeboard.kernel_step in ldap_jax/systems/_snakeboard.py (positions
- * only, no diagnostics; the previous step's force kept apart, which equals the library's folded
- * momentum at a constant step), so the trajectories agree to round-off (bench.py checks it). Built
- * at bench time with the system's C compiler; nothing here is part of the library.
+ * against. The arithmetic of Snakeboard.kernel_step in ldap_jax/systems/_snakeboard.py at
+ * alpha = 1/2 (positions only, no diagnostics): the steering angle turned twice by one sincos of
+ * d = h u_phi / 2 and renormalised, the momenta folded (pu_{k+1} = d_u l + h f_{k+1/2} / 2), one
+ * sincos of the heading increment, so the trajectories agree to round-off (bench.py checks it).
+ * Built at bench time with the system's C compiler (-O3 -march=native, no -ffast-math: it would
+ * change the arithmetic); nothing here is part of the library.
  *
- * State per trajectory: the pose (theta, cos, sin, x, y), psi, phi with its cos and sin, the
- * incoming momenta pu (2) and mu (the 2 components that pair with e_1), the previous force and the
- * control values at t_k; controls: channel c of trajectory b is
- * sum_j A[b][c][j] sin(W[b][c][j] t + P[b][c][j]).
- * Output q[b][k][0..4] = (x, y, theta, psi, phi) at t_k = k h, k = 0..N.
+ * Written for speed as careful scalar C is: the constants of the model and the step (m l^2, 1/I,
+ * 1/(2 J), h/2, ...) hoisted out of the loops, one sincos per angle (none of an angle the state
+ * already holds), reciprocals instead of repeated divisions, the controls at t_k carried from the
+ * previous step (one sin per term and step), the steps of one maneuver in the inner loop, the
+ * state in registers. Two ways to get sin and cos:
+ *   - libm: glibc's sincos and sin (correctly rounded in practice; a call each);
+ *   - poly: the branch-free fdlibm kernels that ldap_jax's sincos uses (one argument reduction,
+ *     two polynomials), inlined, so the compiler schedules them with the step.
+ * (A variant with the batch as the inner loop, a block of maneuvers advanced one step at a time,
+ * was slower here: gcc vectorised it only 2 wide, through gathers of the array of states.)
+ *
+ * Controls: channel c of maneuver b is sum_j A[b][c][j] sin(W[b][c][j] t + P[b][c][j]).
+ * init[b] = (theta, x, y, psi, phi, pu0, pu1, mu0, mu1); ctl[b] = A (2 x nt), W, P.
  */
 #include <math.h>
 #include <stddef.h>
@@ -26,72 +36,137 @@ void set_threads(int n) {
 #endif
 }
 
+/* ---------------------------------------------------------------- sin and cos */
+/* fdlibm __kernel_sin / __kernel_cos on |r| <= pi/4 after a Cody-Waite reduction by pi/2 (the
+ * coefficients and the 33-bit split of pi/2 of ldap_jax._numerics); branch-free. */
+static inline void sincos_poly(double x, double *s_out, double *c_out) {
+  const double S1 = -1.66666666666666324348e-01, S2 = 8.33333333332248946124e-03,
+               S3 = -1.98412698298579493134e-04, S4 = 2.75573137070700676789e-06,
+               S5 = -2.50507602534068634195e-08, S6 = 1.58969099521155010221e-10;
+  const double C1 = 4.16666666666666019037e-02, C2 = -1.38888888888741095749e-03,
+               C3 = 2.48015872894767294178e-05, C4 = -2.75573143513906633035e-07,
+               C5 = 2.08757232129817482790e-09, C6 = -1.13596475577881948265e-11;
+  const double P1 = 1.57079632673412561417e00, P2 = 6.07710050630396597660e-11,
+               P3 = 2.02226624871116645580e-21, TWO_OVER_PI = 0.63661977236758134308;
+  double n = nearbyint(x * TWO_OVER_PI);
+  double r = ((x - n * P1) - n * P2) - n * P3;
+  double z = r * r;
+  double ps = S6;
+  ps = ps * z + S5;
+  ps = ps * z + S4;
+  ps = ps * z + S3;
+  ps = ps * z + S2;
+  ps = ps * z + S1;
+  double pc = C6;
+  pc = pc * z + C5;
+  pc = pc * z + C4;
+  pc = pc * z + C3;
+  pc = pc * z + C2;
+  pc = pc * z + C1;
+  double s = r + r * z * ps;
+  double c = (1.0 - 0.5 * z) + z * z * pc;
+  long q = (long)n & 3;
+  double sin_ = (q & 1) ? c : s, cos_ = (q & 1) ? s : c;
+  *s_out = (q >= 2) ? -sin_ : sin_;
+  *c_out = (q == 1 || q == 2) ? -cos_ : cos_;
+}
+
+static inline double sin_poly(double x) {
+  double s, c;
+  sincos_poly(x, &s, &c);
+  return s;
+}
+
+static inline void sincos_libm(double x, double *s, double *c) {
+  *s = sin(x);
+  *c = cos(x); /* gcc merges the pair into one sincos call at -O3 */
+}
+
+/* ---------------------------------------------------------------- the step */
+typedef struct { /* the model and the step size, hoisted */
+  double h, half_h, ml2, I, inv_I, two_J, inv_2J, m, two_l, eps4;
+} consts_t;
+
+static inline consts_t make_consts(double h, double m, double l, double I, double J) {
+  consts_t k = {h, 0.5 * h, m * l * l, I, 1.0 / I, 2 * J, 1.0 / (2 * J), m, 2 * l, 1.220703125e-4};
+  return k;
+}
+
 typedef struct {
-  double th, c, s, x, y, psi, phi, cphi, sphi, pu0, pu1, mu0, mu1, fp0, fp1, c0, c1;
+  double c, s, x, y, th, psi, phi, cphi, sphi, pu0, pu1, mu0, mu1, f0, f1;
 } state_t;
 
-static inline double control(const double *A, const double *W, const double *P, int nt, double t) {
+/* One RDP step with the controls (g0, g1) at t_{k+1}; SINCOS is sincos_libm or sincos_poly. */
+#define DEFINE_STEP(NAME, SINCOS)                                                                \
+  static inline void NAME(state_t *st, double g0, double g1, const consts_t *k) {               \
+    double fa0 = 0.5 * (st->f0 + g0), fa1 = 0.5 * (st->f1 + g1);                                \
+    double b0 = st->pu0 + k->half_h * fa0, b1 = st->pu1 + k->half_h * fa1;                       \
+    double uphi = b1 * k->inv_2J;                                                                \
+    double sd, cd;                                                                               \
+    SINCOS(k->half_h * uphi, &sd, &cd);                                                          \
+    double ck = st->cphi, sk = st->sphi;                                                         \
+    double sa = sk * cd + ck * sd, ca = ck * cd - sk * sd;                                       \
+    double sn = sa * cd + ca * sd, cn = ca * cd - sa * sd;                                       \
+    double unit = 1.5 - 0.5 * (sn * sn + cn * cn);                                               \
+    sn *= unit;                                                                                  \
+    cn *= unit;                                                                                  \
+    double s2a = 2 * sa * ca, s2k = 2 * sk * ck;                                                 \
+    double kappa = 4 * ca * ck * (ca * ck + sa * sk);                                            \
+    double nu = st->mu0 * s2k - st->mu1 * k->two_l * ck * ck;                                    \
+    double bp = b0 * k->inv_I;                                                                   \
+    double inv_det = 1.0 / (k->ml2 * kappa - k->I * s2k * s2a);                                  \
+    double upsi = (k->ml2 * kappa * bp - s2a * nu) * inv_det;                                    \
+    double cc = (nu - k->I * s2k * bp) * inv_det;                                                \
+    double xi0 = cc * s2a, xi1 = -k->two_l * ca * ca * cc;                                       \
+    st->pu0 = k->I * (upsi + xi0) + k->half_h * fa0;                                             \
+    st->pu1 = k->two_J * uphi + k->half_h * fa1;                                                 \
+    st->mu0 = k->ml2 * xi0 + k->I * upsi;                                                        \
+    st->mu1 = k->m * xi1;                                                                        \
+    double w = k->h * xi0, v2 = k->h * xi1;                                                      \
+    int small = fabs(w) < k->eps4;                                                               \
+    double ws = small ? 1.0 : w, sw, cw;                                                         \
+    SINCOS(ws, &sw, &cw);                                                                        \
+    double inv_ws = 1.0 / ws, w2 = w * w;                                                        \
+    double A = small ? 1 - w2 / 6 + w2 * w2 / 120 : sw * inv_ws;                                 \
+    double B = small ? w / 2 - w * w2 / 24 + w * w2 * w2 / 720 : (1 - cw) * inv_ws;             \
+    if (small) {                                                                                 \
+      cw = 1 - w2 / 2 + w2 * w2 / 24;                                                            \
+      sw = w - w * w2 / 6 + w * w2 * w2 / 120;                                                   \
+    }                                                                                            \
+    double dx = A * v2, dy = B * v2, c = st->c, s = st->s;                                       \
+    st->x += c * dx - s * dy;                                                                    \
+    st->y += s * dx + c * dy;                                                                    \
+    st->th += w;                                                                                 \
+    st->c = c * cw - s * sw;                                                                     \
+    st->s = s * cw + c * sw;                                                                     \
+    st->psi += k->h * upsi;                                                                      \
+    st->phi += k->h * uphi;                                                                      \
+    st->cphi = cn;                                                                               \
+    st->sphi = sn;                                                                               \
+    st->f0 = g0;                                                                                 \
+    st->f1 = g1;                                                                                 \
+  }
+
+DEFINE_STEP(step_libm, sincos_libm)
+DEFINE_STEP(step_poly, sincos_poly)
+
+static inline double control_libm(const double *A, const double *W, const double *P, int nt, double t) {
   double v = 0.0;
   for (int j = 0; j < nt; j++) v += A[j] * sin(W[j] * t + P[j]);
   return v;
 }
 
-static inline void step(state_t *st, double c10, double c11, double h, double m, double l,
-                        double I, double J) {
-  const double a = 0.5, ml2 = m * l * l;
-  double fa0 = (1 - a) * st->c0 + a * c10, fa1 = (1 - a) * st->c1 + a * c11;
-  double b0 = st->pu0 + h * (a * st->fp0 + (1 - a) * fa0);
-  double b1 = st->pu1 + h * (a * st->fp1 + (1 - a) * fa1);
-  double uphi = b1 / (2 * J);
-  double phia = st->phi + a * h * uphi, phin = st->phi + h * uphi;
-  double sa = sin(phia), ca = cos(phia), sn = sin(phin), cn = cos(phin);
-  double cp = st->cphi, sp = st->sphi;
-  double s2a = 2 * sa * ca, s2k = 2 * sp * cp;
-  double e10 = s2k, e11 = -2 * l * cp * cp;
-  double kappa = 4 * ca * cp * (ca * cp + sa * sp);
-  double bb1 = b0 / I, bb2 = st->mu0 * e10 + st->mu1 * e11;
-  double det = ml2 * kappa - I * s2k * s2a;
-  double upsi = (ml2 * kappa * bb1 - s2a * bb2) / det;
-  double cc = (bb2 - I * s2k * bb1) / det;
-  double xi0 = cc * s2a, xi1 = -2 * l * ca * ca * cc;
-  st->pu0 = I * (upsi + xi0);
-  st->pu1 = 2 * J * uphi;
-  /* mu_{k+1} = (I + ad_{h xi}/2)^T mu_k; only the two components that pair with e_1 are kept */
-  st->mu0 = ml2 * xi0 + I * upsi;
-  st->mu1 = m * xi1;
-  double w = h * xi0, v2 = h * xi1;
-  double sw = sin(w), cw = cos(w), A_, B_;
-  if (fabs(w) < 1.220703125e-4) { /* eps^(1/4), as the JAX kernel */
-    A_ = 1 - w * w / 6 + w * w * w * w / 120;
-    B_ = w / 2 - w * w * w / 24 + w * w * w * w * w / 720;
-    cw = 1 - w * w / 2 + w * w * w * w / 24;
-    sw = w * A_;
-  } else {
-    A_ = sw / w;
-    B_ = (1 - cw) / w;
-  }
-  double dx = A_ * v2, dy = B_ * v2;
-  st->x += st->c * dx - st->s * dy;
-  st->y += st->s * dx + st->c * dy;
-  double c = st->c * cw - st->s * sw, s = st->s * cw + st->c * sw;
-  st->c = c;
-  st->s = s;
-  st->th += w;
-  st->psi += h * upsi;
-  st->phi = phin;
-  st->cphi = cn;
-  st->sphi = sn;
-  st->fp0 = fa0;
-  st->fp1 = fa1;
-  st->c0 = c10;
-  st->c1 = c11;
+static inline double control_poly(const double *A, const double *W, const double *P, int nt, double t) {
+  double v = 0.0;
+  for (int j = 0; j < nt; j++) v += A[j] * sin_poly(W[j] * t + P[j]);
+  return v;
 }
 
 static inline state_t initial_state(const double *in, const double *A, const double *W, const double *P,
                                     int nt) {
-  state_t st = {in[0], cos(in[0]), sin(in[0]), in[1], in[2], in[3], in[4], cos(in[4]), sin(in[4]),
-                in[5], in[6], in[7], in[8], 0.0, 0.0,
-                control(A, W, P, nt, 0.0), control(A + nt, W + nt, P + nt, nt, 0.0)};
+  state_t st = {cos(in[0]), sin(in[0]), in[1], in[2], in[0], in[3], in[4], cos(in[4]), sin(in[4]),
+                in[5], in[6], in[7], in[8], control_libm(A, W, P, nt, 0.0),
+                control_libm(A + nt, W + nt, P + nt, nt, 0.0)};
   return st;
 }
 
@@ -99,47 +174,27 @@ static inline void store(double *o, const state_t *st) {
   o[0] = st->x, o[1] = st->y, o[2] = st->th, o[3] = st->psi, o[4] = st->phi;
 }
 
-/* init[b] = (th, x, y, psi, phi, pu0, pu1, mu0, mu1); ctl[b] = A (2 x nt), W, P; q: (B, N+1, 5).
- * A scalar loop over the steps of each trajectory, trajectories split over the OpenMP threads. */
-void rollout(int B, int N, int nt, double h, double m, double l, double I, double J,
-             const double *init, const double *ctl, double *q) {
-#pragma omp parallel for schedule(static)
-  for (int b = 0; b < B; b++) {
-    const double *A = ctl + (size_t)6 * nt * b, *W = A + 2 * nt, *P = A + 4 * nt;
-    state_t st = initial_state(init + 9 * b, A, W, P, nt);
-    double *o = q + (size_t)5 * (N + 1) * b;
-    for (int k = 0; k <= N; k++) {
-      store(o + 5 * k, &st);
-      if (k == N) break;
-      double t1 = (k + 1) * h;
-      step(&st, control(A, W, P, nt, t1), control(A + nt, W + nt, P + nt, nt, t1), h, m, l, I, J);
-    }
+/* A scalar loop over the steps of each maneuver (maneuvers split over the OpenMP threads). With
+ * ALL the nodes are stored (q: (B, N+1, 5), for the agreement check), else the final one
+ * (q: (B, 5)), as a positions-only rollout (save="final") returns. */
+#define DEFINE_ROLLOUT(NAME, STEP, CONTROL, ALL)                                                   \
+  void NAME(int B, int N, int nt, double h, double m, double l, double I, double J, const double *init, \
+            const double *ctl, double *q) {                                                         \
+    const consts_t k = make_consts(h, m, l, I, J);                                                  \
+    _Pragma("omp parallel for schedule(static)") for (int b = 0; b < B; b++) {                      \
+      const double *A = ctl + (size_t)6 * nt * b, *W = A + 2 * nt, *P = A + 4 * nt;                 \
+      state_t st = initial_state(init + 9 * b, A, W, P, nt);                                        \
+      double *o = q + (size_t)5 * (ALL ? N + 1 : 1) * b;                                            \
+      for (int i = 0; i < N; i++) {                                                                 \
+        if (ALL) store(o + 5 * i, &st);                                                             \
+        double t1 = (i + 1) * h;                                                                    \
+        STEP(&st, CONTROL(A, W, P, nt, t1), CONTROL(A + nt, W + nt, P + nt, nt, t1), &k);           \
+      }                                                                                             \
+      store(o + (ALL ? 5 * N : 0), &st);                                                            \
+    }                                                                                               \
   }
-}
 
-/* The same rollout with the batch as the inner loop (blocks of 64 trajectories advanced one step
- * at a time), so that the compiler can vectorise the step across trajectories (with -ffast-math
- * gcc calls glibc's vector sin/cos). */
-#define BLOCK 64
-void rollout_simd(int B, int N, int nt, double h, double m, double l, double I, double J,
-                  const double *init, const double *ctl, double *q) {
-#pragma omp parallel for schedule(static)
-  for (int b0 = 0; b0 < B; b0 += BLOCK) {
-    int nb = B - b0 < BLOCK ? B - b0 : BLOCK;
-    state_t st[BLOCK];
-    for (int i = 0; i < nb; i++) {
-      const double *A = ctl + (size_t)6 * nt * (b0 + i);
-      st[i] = initial_state(init + 9 * (b0 + i), A, A + 2 * nt, A + 4 * nt, nt);
-    }
-    for (int k = 0; k <= N; k++) {
-      for (int i = 0; i < nb; i++) store(q + 5 * ((size_t)(N + 1) * (b0 + i) + k), &st[i]);
-      if (k == N) break;
-      double t1 = (k + 1) * h;
-#pragma omp simd
-      for (int i = 0; i < nb; i++) {
-        const double *A = ctl + (size_t)6 * nt * (b0 + i), *W = A + 2 * nt, *P = A + 4 * nt;
-        step(&st[i], control(A, W, P, nt, t1), control(A + nt, W + nt, P + nt, nt, t1), h, m, l, I, J);
-      }
-    }
-  }
-}
+DEFINE_ROLLOUT(rollout_libm, step_libm, control_libm, 1)
+DEFINE_ROLLOUT(rollout_final_libm, step_libm, control_libm, 0)
+DEFINE_ROLLOUT(rollout_poly, step_poly, control_poly, 1)
+DEFINE_ROLLOUT(rollout_final_poly, step_poly, control_poly, 0)
