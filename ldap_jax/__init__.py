@@ -4,11 +4,16 @@ The RDP (reduced d'Alembert-Pontryagin) integrator of Kobilarov, Marsden and Suk
 "Geometric discretization of nonholonomic systems with symmetries" (DCDS-S, 2010), with the
 steered car and the snakeboard, RK baselines, a diffrax reference, and end-to-end
 differentiable rollouts.
+
+The core imports JAX and equinox only: ``ldap_jax.control`` (optax), ``ldap_jax.study`` and
+``ldap_jax.plotting`` (matplotlib) are imported when first used (``lj.control``, ``import
+ldap_jax.plotting``), and diffrax when :func:`reference` is first called.
 """
 
+import importlib as _importlib
 import importlib.metadata as _metadata
+from typing import Any as _Any
 
-from . import control as control
 from . import integrators as integrators
 from . import lie as lie
 from . import systems as systems
@@ -45,6 +50,23 @@ from .systems import Snakeboard as Snakeboard
 from .systems import System as System
 from .systems import chaplygin_sleigh as chaplygin_sleigh
 from .systems import roller_racer as roller_racer
+
+#: subpackages imported on first attribute access (``lj.control``), not with the core
+_LAZY_SUBPACKAGES = ("control", "plotting", "study")
+
+
+def __getattr__(name: str) -> _Any:
+    """Import a subpackage of :data:`_LAZY_SUBPACKAGES` when it is first accessed (PEP 562)."""
+    if name in _LAZY_SUBPACKAGES:
+        module = _importlib.import_module(f".{name}", __name__)
+        globals()[name] = module
+        return module
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY_SUBPACKAGES))
+
 
 try:
     __version__ = _metadata.version("ldap_jax")
