@@ -27,6 +27,7 @@ import dataclasses
 import json
 import os
 import pathlib
+import resource
 import subprocess
 import sys
 import time
@@ -221,12 +222,11 @@ def run_stage(stage: Stage, i: int, n: int, args, env: dict[str, str]) -> dict:
     out = pathlib.Path(args.out)
     log = out / "logs" / f"{stage.name.replace(' ', '_')}.log"
     print(f"[{i}/{n}] {stage.name:<14} {stage.what} ...", end="", flush=True)
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), _children_cpu()
     with open(log, "w") as f:
-        rc = subprocess.run(
-            stage.command(args.full, out), stdout=f, stderr=subprocess.STDOUT, env=env
-        ).returncode
-    seconds = time.perf_counter() - start
+        command = stage.command(args.full, out)
+        rc = subprocess.run(command, stdout=f, stderr=subprocess.STDOUT, env=env).returncode
+    seconds, cpu = time.perf_counter() - start, _children_cpu() - cpu
     headline = ""
     if rc == 0:
         try:
@@ -234,14 +234,22 @@ def run_stage(stage: Stage, i: int, n: int, args, env: dict[str, str]) -> dict:
         except (OSError, KeyError, ValueError, TypeError, StopIteration) as err:
             headline = f"(no headline: {type(err).__name__} {err}; see {log})"
     status = "ok" if rc == 0 else f"FAILED (exit {rc}; see {log})"
-    print(f" {seconds:5.0f} s  {status}", flush=True)
-    return dict(stage=stage, seconds=seconds, ok=rc == 0, headline=headline, log=log)
+    print(f" {seconds:4.0f} s (cpu {cpu:.0f} s)  {status}", flush=True)
+    return dict(stage=stage, seconds=seconds, cpu=cpu, ok=rc == 0, headline=headline, log=log)
+
+
+def _children_cpu() -> float:
+    """CPU seconds (user + system) of the finished child processes: on a shared machine the wall
+    time of a stage says more about the other processes than about it."""
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
 
 
 def summary(done: list[dict], out: pathlib.Path, total: float, cache: str | None) -> str:
     """The closing table (markdown): what each stage wrote and its headline numbers."""
+    cpu = sum(d["cpu"] for d in done)
     lines = [
-        f"# ldap_jax demo: {len(done)} stages in {total:.0f} s",
+        f"# ldap_jax demo: {len(done)} stages in {total:.0f} s (cpu {cpu:.0f} s)",
         "",
         f"Everything is under `{out}/` (logs in `{out}/logs/`). Persistent compilation cache: "
         + (f"`{cache}`." if cache else "off."),
