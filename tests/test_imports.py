@@ -26,7 +26,8 @@ assert "diffrax" not in sys.modules and "matplotlib" not in sys.modules
 from ldap_jax import plotting
 
 assert plotting is lj.plotting and "matplotlib" in sys.modules
-assert {"control", "plotting", "study"} <= set(dir(lj))
+assert {"control", "plotting", "study", "__version__"} <= set(dir(lj))
+assert isinstance(lj.__version__, str) and lj.__version__
 try:
     lj.no_such_name
 except AttributeError as err:
