@@ -15,8 +15,9 @@ Every stage runs with JAX's persistent compilation cache (``$LDAP_JAX_CACHE``, b
 compilation is most of a quick run, and a second run loads the programs instead. The
 benchmarks' "first call in a new process" rows run without it.
 
-To add a stage, append a :class:`Stage` to :data:`STAGES` with a function that reads its headline
-from the files it writes.
+Each stage is made by one function (``gait_stage`` etc.): to change a stage, change its function;
+to add one, write a function that returns a :class:`Stage` (with a function that reads its
+headline from the files it writes) and add it to :data:`STAGES`.
 """
 
 from __future__ import annotations
@@ -40,7 +41,8 @@ SCRIPTS = pathlib.Path(__file__).resolve().parent
 class Stage:
     """One step of the demo: a script with its quick and full arguments (``--out`` is added),
     the files it writes (relative to ``--out``; ``*`` globs) and a function ``out -> text`` that
-    reads its headline numbers from them."""
+    reads its headline numbers from them. A stage with ``in_quick=False`` runs with ``--full`` or
+    when named in ``--only`` (then with its quick arguments), not in the default quick demo."""
 
     name: str
     what: str
@@ -49,6 +51,7 @@ class Stage:
     full: tuple[str, ...]
     outputs: tuple[str, ...]
     headline: Callable[[pathlib.Path], str]
+    in_quick: bool = True
 
     def command(self, full: bool, out: pathlib.Path) -> list[str]:
         args = self.full if full else self.quick
@@ -126,10 +129,8 @@ def _control(out: pathlib.Path) -> str:
     return "; ".join(parts)
 
 
-#: The stages, in order. Quick settings keep the demo within a few minutes on 2 cores (each stage's
-#: cold time is in the README's development notes); --full runs each script at its own full size.
-STAGES = (
-    Stage(
+def quickstart_stage() -> Stage:
+    return Stage(
         "quickstart",
         "the car and the snakeboard: RDP orders 2, 4, 6 and RK4 against the reference",
         "quickstart.py",
@@ -137,17 +138,23 @@ STAGES = (
         (),
         ("quickstart_*.png", "convergence.png", "energy_long_run.png", "snakeboard_gait*", "quickstart.*"),
         _quickstart,
-    ),
-    Stage(
+    )
+
+
+def study_stage() -> Stage:
+    return Stage(
         "study",
         "the paper's Monte Carlo study (snakeboard, 32 maneuvers, 10 s and 10 min)",
         "sweep.py",
-        ("--quick", "--resolutions", "250,500,1000"),
+        ("--quick", "--resolutions", "250,1000", "--repeats", "2"),
         (),
         ("sweep*.csv", "sweep_*.png"),
         _study,
-    ),
-    Stage(
+    )
+
+
+def parking_stage() -> Stage:
+    return Stage(
         "parking",
         "optimal control: the car parks (lc.solve)",
         "optimize.py",
@@ -155,8 +162,13 @@ STAGES = (
         ("--model", "car", "--task", "parallel_park"),
         ("optimize_car_parallel_park.*", "parallel_park.gif"),
         _optimize("car_parallel_park"),
-    ),
-    Stage(
+    )
+
+
+def gait_stage() -> Stage:
+    """The snakeboard's gait: swap this function's stage for another gait (its script, arguments,
+    files and headline) without touching the others."""
+    return Stage(
         "forward gait",
         "a snakeboard gait optimised for distance (lc.optimize)",
         "optimize.py",
@@ -164,17 +176,27 @@ STAGES = (
         ("--model", "snakeboard", "--task", "forward_gait"),
         ("optimize_snakeboard_forward_gait.*", "forward_gait.gif"),
         _optimize("snakeboard_forward_gait"),
-    ),
-    Stage(
+    )
+
+
+def bench_stage() -> Stage:
+    # the first calls in new processes (section first_calls) run with --full: they compile
+    # everything again without the cache (about a third of the stage)
+    return Stage(
         "bench",
-        "throughput against compiled C, first calls in a new process",
+        "throughput against compiled C",
         "bench.py",
-        ("--quick", "--only", "headline,compiled_c,first_calls"),
+        ("--quick", "--only", "headline,compiled_c"),
         (),
         ("bench.json", "bench.md"),
         _bench,
-    ),
-    Stage(
+    )
+
+
+def control_bench_stage() -> Stage:
+    # about as long as the rest of the quick demo together (two solver programs compiled, CasADi,
+    # a batch, a sharded batch, sensitivities): with --full, or --only "control bench"
+    return Stage(
         "control bench",
         "lc.solve against CasADi + IPOPT on parallel_park and u_turn",
         "bench_control.py",
@@ -182,7 +204,19 @@ STAGES = (
         ("--robustness", "0,1,2"),
         ("bench_control.json", "bench_control.md"),
         _control,
-    ),
+        in_quick=False,
+    )
+
+
+#: The stages, in order, one function each. The quick settings keep the default demo within about
+#: five minutes on 2 cores (docs/development.md); --full runs each script at its own full size.
+STAGES = (
+    quickstart_stage(),
+    study_stage(),
+    parking_stage(),
+    gait_stage(),
+    bench_stage(),
+    control_bench_stage(),
 )
 
 
@@ -272,11 +306,15 @@ def main(argv=None) -> int:
     p.add_argument("--list", action="store_true", help="list the stages and their commands, and exit")
     args = p.parse_args(argv)
     names = [s.name for s in STAGES]
-    chosen = names if args.only is None else [s.strip() for s in args.only.split(",")]
+    if args.only is None:
+        chosen = [s.name for s in STAGES if args.full or s.in_quick]
+    else:
+        chosen = [s.strip() for s in args.only.split(",")]
     unknown = [s for s in chosen if s not in names]
     if unknown:
         p.error(f"--only: unknown stages {unknown}; choose among {', '.join(names)}")
     stages = [s for s in STAGES if s.name in chosen]
+    skipped = [s.name for s in STAGES if s.name not in chosen]
     out = pathlib.Path(args.out)
     if args.list:
         for s in stages:
@@ -288,6 +326,11 @@ def main(argv=None) -> int:
     start = time.perf_counter()
     done = [run_stage(s, i + 1, len(stages), args, env) for i, s in enumerate(stages)]
     text = summary(done, out, time.perf_counter() - start, cache)
+    if skipped:
+        text += (
+            f"\nNot run: {', '.join(skipped)} (`python scripts/demo.py --only "
+            f"'{','.join(skipped)}'` at quick settings; `--full` runs every stage).\n"
+        )
     (out / "demo.md").write_text(text)
     print("\n" + text)
     return 0 if all(d["ok"] for d in done) else 1
