@@ -213,14 +213,18 @@ def test_guide_pages_have_checks():
 
 
 def test_readme_is_short_and_links_exist():
-    """The README teaches in at most 250 lines, and its links to files in the repository resolve.
-    (``docs/guide/control.md`` belongs to the control package's branch; until it lands it may be
-    missing here.)"""
+    """The README teaches in at most 250 lines, and the links of the README, the guide and the
+    results and development pages to files in the repository resolve. (``docs/guide/control.md``
+    belongs to the control package's branch; until it lands it may be missing here.)"""
     assert len(README.splitlines()) <= 250, len(README.splitlines())
-    pending = {"docs/guide/control.md"}
-    links = re.findall(r"\]\(([^)#]+)(?:#[^)]*)?\)", README)
-    assert links
-    missing = [a for a in links if "://" not in a and a not in pending and not (ROOT / a).exists()]
+    pending = {(ROOT / "docs" / "guide" / "control.md").resolve()}
+    pages = [ROOT / "README.md", ROOT / "docs" / "results.md", ROOT / "docs" / "development.md", *GUIDE]
+    missing = []
+    for page in pages:
+        for target in re.findall(r"\]\(([^)#]+)(?:#[^)]*)?\)", page.read_text()):
+            path = (page.parent / target).resolve()
+            if "://" not in target and path not in pending and not path.exists():
+                missing.append(f"{page.relative_to(ROOT)}: {target}")
     assert not missing, missing
 
 
