@@ -40,14 +40,12 @@ $(VENV)/.installed-dev: pyproject.toml | $(VENV)/bin/python
 	$(call compile_imports,$(WORKER_IMPORTS)) & $(call compile_imports,$(CHILD_IMPORTS)) && wait $$!
 	touch $@
 
-# The main job at quick settings; figures and tables under results/.
+# The main results at quick settings (a few minutes on 2 cores): one line per stage, then a table of
+# what was written under results/ and the headline numbers. `make demo DEMO_ARGS=--full` runs the
+# paper-size versions; `python scripts/demo.py --list` shows the stages.
+DEMO_ARGS ?=
 demo: $(VENV)/.installed
-	$(PY) scripts/demo.py --quick --out results
-	$(PY) scripts/sweep.py --quick --out results
-	$(PY) scripts/optimize.py --model car --task parallel_park --quick --out results
-	$(PY) scripts/optimize.py --model snakeboard --task forward_gait --quick --out results
-	$(PY) scripts/bench.py --quick --out results
-	$(PY) scripts/bench_control.py --quick --out results
+	$(PY) scripts/demo.py --out results $(DEMO_ARGS)
 
 # The test suite (2 workers); pytest's "no tests collected" (exit 5) is a failure here.
 test: $(VENV)/.installed-dev

@@ -4,11 +4,15 @@ The RDP (reduced d'Alembert-Pontryagin) integrator of Kobilarov, Marsden and Suk
 "Geometric discretization of nonholonomic systems with symmetries" (DCDS-S, 2010), with the
 steered car and the snakeboard, RK baselines, a diffrax reference, and end-to-end
 differentiable rollouts.
+
+The core imports JAX and equinox only: ``ldap_jax.control`` (optax), ``ldap_jax.study`` and
+``ldap_jax.plotting`` (matplotlib) are imported when first used (``lj.control``, ``import
+ldap_jax.plotting``), and diffrax when :func:`reference` is first called.
 """
 
-import importlib.metadata as _metadata
+import importlib as _importlib
+from typing import Any as _Any
 
-from . import control as control
 from . import integrators as integrators
 from . import lie as lie
 from . import systems as systems
@@ -46,7 +50,29 @@ from .systems import System as System
 from .systems import chaplygin_sleigh as chaplygin_sleigh
 from .systems import roller_racer as roller_racer
 
-try:
-    __version__ = _metadata.version("ldap_jax")
-except _metadata.PackageNotFoundError:  # pragma: no cover
-    __version__ = "0.0.0"
+#: subpackages imported on first attribute access (``lj.control``), not with the core
+_LAZY_SUBPACKAGES = ("control", "plotting", "study")
+
+
+def __getattr__(name: str) -> _Any:
+    """Import a subpackage of :data:`_LAZY_SUBPACKAGES` when it is first accessed, and read
+    ``__version__`` from the package metadata when first asked for (``importlib.metadata`` takes
+    about 0.08 s to import) (PEP 562)."""
+    if name in _LAZY_SUBPACKAGES:
+        module = _importlib.import_module(f".{name}", __name__)
+        globals()[name] = module
+        return module
+    if name == "__version__":
+        import importlib.metadata
+
+        try:
+            version = importlib.metadata.version("ldap_jax")
+        except importlib.metadata.PackageNotFoundError:  # pragma: no cover
+            version = "0.0.0"
+        globals()[name] = version
+        return version
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY_SUBPACKAGES) | {"__version__"})

@@ -16,10 +16,10 @@ class RESULTS(eqx.Enumeration):
 
     Compare with ``==`` (``traj.result == lj.RESULTS.successful``); ``RESULTS[traj.result]`` gives
     the message; ``int(traj.result._value)`` the integer code (0 success, as listed here). Each
-    message says what to do about it.
+    message says what happened, success included, and a failure's what to do about it.
     """
 
-    successful = ""
+    successful = "successful: the run finished and every diagnostic is finite."
     nonfinite = (
         "non-finite values (NaN or inf) in the state or in a diagnostic (energy, work, momentum): "
         "the step is far too large for the motion, or an input (a control, a parameter) is so "

@@ -1,425 +1,340 @@
-"""The main job's first stage: the car and the snakeboard under RDP against the diffrax reference
-and RK4, the orders 4 and 6, a long work-free run, and a snakeboard gait.
+"""`make demo`: the library's main results at quick settings, one stage after the other.
 
-Writes under ``--out``:
+    python scripts/demo.py                  # quick settings, a few minutes on 2 cores -> results/
+    python scripts/demo.py --full           # the paper-size versions (hours: the full study)
+    python scripts/demo.py --only study,control --out DIR
+    python scripts/demo.py --list           # the stages and the commands they run
 
-* ``quickstart_paths.png``: a random maneuver of each model; paths (vehicles small, start and
-  end marked) and the position error against the reference over time, per integrator;
-* ``quickstart_diagnostics.png``: per model, the energy error against the reference, the
-  work-energy balance ``|E - E0 - W|`` and (snakeboard) the nonholonomic momentum;
-* ``quickstart.md``: the numbers (errors, energy, fitted orders, the long run, the gait, times);
-* ``convergence.png``: the car's position error at 10 s against the step, RDP orders 2, 4, 6
-  and RK4, against ``lj.reference``;
-* ``energy_long_run.png``: the car steered without torque (no work is done, the energy is
-  conserved) over 10^5 steps (``--quick``: 10^4), RDP orders 2, 4, 6 against RK4;
-* ``snakeboard_gait_loop.png``, ``snakeboard_gait.gif``: a snakeboard gait (its loop in shape
-  space, its momentum and path) and an animation of the RDP run with the reference.
+Each stage is one of the scripts in this folder, run in a process of its own (the benchmarks fix
+the number of XLA devices when JAX starts), with its output in ``OUT/logs/<stage>.log``. The demo
+prints one line per stage as it finishes, and at the end a table: what each stage wrote, where,
+and its headline numbers (read back from the files it wrote).
 
-Compilation dominates a quick run (seconds per program, milliseconds per run), so every run of
-one integrator on one model shares one compiled program: the runs differ only in traced inputs
-(initial state, controls, final time) and all take the same ``n_steps`` and saved nodes, each
-reading the nodes it needs (node ``n`` of a run with step ``T / n`` is at time ``T``: that is
-how the convergence runs share the long run's program). ``--jobs`` programs compile at once.
+Every stage runs with JAX's persistent compilation cache (``$LDAP_JAX_CACHE``, by default
+``~/.cache/ldap_jax/xla``, as ``lj.enable_compilation_cache()``; ``--no-cache`` turns it off):
+compilation is most of a quick run, and a second run loads the programs instead. The
+benchmarks' "first call in a new process" rows run without it.
+
+Each stage is made by one function (``gait_stage`` etc.): to change a stage, change its function;
+to add one, write a function that returns a :class:`Stage` (with a function that reads its
+headline from the files it writes) and add it to :data:`STAGES`.
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
+import dataclasses
+import json
+import os
 import pathlib
+import resource
+import subprocess
+import sys
 import time
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable
 
-import jax
+SCRIPTS = pathlib.Path(__file__).resolve().parent
 
-jax.config.update("jax_enable_x64", True)
 
-import jax.numpy as jnp
-import matplotlib
-import numpy as np
+@dataclasses.dataclass(frozen=True)
+class Stage:
+    """One step of the demo: a script with its quick and full arguments (``--out`` is added),
+    the files it writes (relative to ``--out``; ``*`` globs) and a function ``out -> text`` that
+    reads its headline numbers from them. A stage with ``in_quick=False`` runs with ``--full`` or
+    when named in ``--only`` (then with its quick arguments), not in the default quick demo."""
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
+    name: str
+    what: str
+    script: str
+    quick: tuple[str, ...]
+    full: tuple[str, ...]
+    outputs: tuple[str, ...]
+    headline: Callable[[pathlib.Path], str]
+    in_quick: bool = True
 
-import ldap_jax as lj
-from ldap_jax.plotting import (
-    animate,
-    fitted_order,
-    plot_convergence,
-    plot_diagnostics,
-    plot_energy_error,
-    plot_paths,
-    plot_position_error,
-    plot_shape_loop,
-    style_for,
+    def command(self, full: bool, out: pathlib.Path) -> list[str]:
+        args = self.full if full else self.quick
+        return [sys.executable, str(SCRIPTS / self.script), *args, "--out", str(out)]
+
+
+def _json(path: pathlib.Path) -> dict:
+    return json.loads(path.read_text())
+
+
+def _quickstart(out: pathlib.Path) -> str:
+    r = _json(out / "quickstart.json")
+    err = r["final_position_error"]
+    car = ", ".join(f"{k} {err[f'car {k}']:.1e}" for k in ("RDP", "RDP-4", "RDP-6", "RK4"))
+    orders = "/".join(f"{r['fitted_order'][k]:.1f}" for k in ("RDP", "RDP-4", "RDP-6"))
+    return f"car at h = {r['h']:g} s, error at {r['t_final']:g} s [m]: {car}; fitted orders {orders}"
+
+
+def _study(out: pathlib.Path) -> str:
+    with open(out / "sweep.csv") as f:
+        rows = list(csv.DictReader(f))
+    short = [r for r in rows if float(r["duration"]) <= 10.0]
+    long = [r for r in rows if float(r["duration"]) > 10.0]
+    n = max(int(r["n_steps"]) for r in short)
+    at_n = {r["method"]: r for r in short if int(r["n_steps"]) == n}
+    parts = [
+        f"10 s, N = {n}: " + ", ".join(f"{m} {float(r['final_error_median']):.1e} m" for m, r in at_n.items())
+    ]
+    if long:
+        n0 = min(int(r["n_steps"]) for r in long)
+        fails = {r["method"]: float(r["failure_rate"]) for r in long if int(r["n_steps"]) == n0}
+        parts.append(f"10 min, N = {n0} failures: " + ", ".join(f"{m} {v:.0%}" for m, v in fails.items()))
+    return "; ".join(parts)
+
+
+def _optimize(stem: str) -> Callable[[pathlib.Path], str]:
+    def headline(out: pathlib.Path) -> str:
+        r = _json(out / f"optimize_{stem}.json")
+        how = f"{r['iterations']} iterations" + (" (converged)" if r.get("converged") else "")
+        return (
+            f"{how} in {r['wall_s']:.1f} s; replayed on lj.reference: "
+            f"{r['final_position_error']:.1e} m, {r['final_heading_error']:.1e} rad from the goal"
+        )
+
+    return headline
+
+
+def _bench(out: pathlib.Path) -> str:
+    r = _json(out / "bench.json")
+    parts = []
+    one = next((h for h in r.get("headline", []) if h["layout"] == "1 device"), None)
+    if one:
+        parts.append(f"snakeboard RDP {one['steps_per_s_q']:.2g} steps/s (B = N = {one['N']}, 1 device)")
+    c1 = next((c for c in r.get("compiled_c", []) if c["threads"] == 1), None)
+    if c1:
+        parts.append(f"C, 1 thread {c1['steps_per_s']:.2g}")
+    calls = {c["call"].split(" ")[0]: c["seconds"] for c in r.get("first_calls", [])}
+    if calls:
+        parts.append(
+            "first calls: "
+            + ", ".join(f"{k} {calls[k]:.1f} s" for k in ("simulate", "lc.solve") if k in calls)
+        )
+    return "; ".join(parts)
+
+
+def _control(out: pathlib.Path) -> str:
+    r = _json(out / "bench_control.json")
+    parts = []
+    for task, ours in r["ours"].items():
+        text = f"{task}: lc.solve {ours['repeat_s']:.3f} s, {ours['position_error']:.0e} m"
+        ipopt = r.get("casadi", {}).get(task)
+        if ipopt:
+            text += f" (IPOPT {ipopt['repeat_s']:.3f} s, {ipopt['position_error']:.0e} m)"
+        parts.append(text)
+    return "; ".join(parts)
+
+
+def quickstart_stage() -> Stage:
+    return Stage(
+        "quickstart",
+        "the car and the snakeboard: RDP orders 2, 4, 6 and RK4 against the reference",
+        "quickstart.py",
+        ("--quick",),
+        (),
+        ("quickstart_*.png", "convergence.png", "energy_long_run.png", "snakeboard_gait*", "quickstart.*"),
+        _quickstart,
+    )
+
+
+def study_stage() -> Stage:
+    return Stage(
+        "study",
+        "the paper's Monte Carlo study (snakeboard, 32 maneuvers, 10 s and 10 min)",
+        "sweep.py",
+        ("--quick", "--resolutions", "250,1000", "--repeats", "2"),
+        (),
+        ("sweep*.csv", "sweep_*.png"),
+        _study,
+    )
+
+
+def parking_stage() -> Stage:
+    return Stage(
+        "parking",
+        "optimal control: the car parks (lc.solve)",
+        "optimize.py",
+        ("--model", "car", "--task", "parallel_park", "--quick"),
+        ("--model", "car", "--task", "parallel_park"),
+        ("optimize_car_parallel_park.*", "parallel_park.gif"),
+        _optimize("car_parallel_park"),
+    )
+
+
+def gait_stage() -> Stage:
+    """The snakeboard's gait: swap this function's stage for another gait (its script, arguments,
+    files and headline) without touching the others."""
+    return Stage(
+        "forward gait",
+        "a snakeboard gait optimised for distance (lc.optimize)",
+        "optimize.py",
+        ("--model", "snakeboard", "--task", "forward_gait", "--quick"),
+        ("--model", "snakeboard", "--task", "forward_gait"),
+        ("optimize_snakeboard_forward_gait.*", "forward_gait.gif"),
+        _optimize("snakeboard_forward_gait"),
+    )
+
+
+def bench_stage() -> Stage:
+    # the first calls in new processes (section first_calls) run with --full: they compile
+    # everything again without the cache (about a third of the stage)
+    return Stage(
+        "bench",
+        "throughput against compiled C",
+        "bench.py",
+        ("--quick", "--only", "headline,compiled_c"),
+        (),
+        ("bench.json", "bench.md"),
+        _bench,
+    )
+
+
+def control_bench_stage() -> Stage:
+    # about as long as the rest of the quick demo together (two solver programs compiled, CasADi,
+    # a batch, a sharded batch, sensitivities): with --full, or --only "control bench"
+    return Stage(
+        "control bench",
+        "lc.solve against CasADi + IPOPT on parallel_park and u_turn",
+        "bench_control.py",
+        ("--quick",),
+        ("--robustness", "0,1,2"),
+        ("bench_control.json", "bench_control.md"),
+        _control,
+        in_quick=False,
+    )
+
+
+#: The stages, in order, one function each. The quick settings keep the default demo within about
+#: five minutes on 2 cores (docs/development.md); --full runs each script at its own full size.
+STAGES = (
+    quickstart_stage(),
+    study_stage(),
+    parking_stage(),
+    gait_stage(),
+    bench_stage(),
+    control_bench_stage(),
 )
 
-# the car carries the orders (convergence, long run); the snakeboard the gait
-METHODS = {
-    "car": {"RDP": lj.RDP(), "RDP-4": lj.RDP(order=4), "RDP-6": lj.RDP(order=6), "RK4": lj.RK4()},
-    "snakeboard": {"RDP": lj.RDP(), "RK4": lj.RK4()},
-}
-REFERENCE = "reference (diffrax Dopri8)"
-T_FINAL = 10.0  # s: the maneuvers, the gait and the convergence study
-H_SHOW = 0.1  # s: the step of the quickstart figures and table
-H_GAIT = 0.05  # s: the gait's step
-H_LONG = 0.1  # s: the long run's step
-FIT_FLOOR = 1e-10  # m: smaller errors are at the reference's accuracy (not fitted)
 
-
-def pad_terms(ctl: lj.Sinusoids, n_terms: int) -> lj.Sinusoids:
-    """The same controls with zero-amplitude terms appended up to ``n_terms`` (equal shapes let
-    different runs share one compiled program)."""
-    pad = n_terms - ctl.amplitude.shape[-1]
-    z = np.zeros(ctl.amplitude.shape[:-1] + (pad,))
-    cat = lambda a, fill: np.concatenate([np.asarray(a), z + fill], -1)  # noqa: E731
-    return lj.Sinusoids(cat(ctl.amplitude, 0.0), cat(ctl.frequency, 1.0), cat(ctl.phase, 0.0))
-
-
-def snakeboard_gait(sb: lj.Snakeboard) -> lj.Sinusoids:
-    """Rotor torque ``-0.2 cos 2t`` (N m) and the steering torque ``f_phi = 2 J 0.3 4 cos 2t``
-    giving ``phi = 0.3 (1 - cos 2t)`` from rest (its phase matched to ``phidot(0) = 0``, so phi
-    stays in [0, 0.6] rad, far from the singularity ``cos phi = 0``)."""
-    J = float(sb.J)
-    return lj.Sinusoids(
-        amplitude=[[0.2], [-2 * J * 0.3 * 4.0]], frequency=[[2.0], [2.0]], phase=[[-np.pi / 2], [-np.pi / 2]]
+def cache_environment(enabled: bool) -> tuple[dict[str, str], str | None]:
+    """The stages' environment: JAX's persistent compilation cache on (JAX reads these variables
+    when it starts), in ``$LDAP_JAX_CACHE`` or ``lj.enable_compilation_cache``'s default folder."""
+    env = dict(os.environ)
+    if not enabled:
+        return env, None
+    path = os.environ.get("LDAP_JAX_CACHE") or os.path.join(
+        os.path.expanduser("~"), ".cache", "ldap_jax", "xla"
     )
-
-
-def build(args) -> tuple[dict, tuple[int, ...]]:
-    """Per model: the system, its runs ``(name, q0, qdot0, controls, h)``, the shared ``n_steps``
-    and saved nodes."""
-    conv = (25, 50, 100, 200, 400) if args.quick else (25, 50, 100, 200, 400, 800)
-    n_long = 10_000 if args.quick else 100_000
-    car, sb = lj.Car(), lj.Snakeboard()
-    key = jax.random.PRNGKey(args.seed)
-    # car: a random maneuver at every convergence step; the long work-free run at h and h/2
-    q0, qdot0, ctl = jax.jit(lambda k: car.sample_maneuver(k))(key)  # one small program, not many ops
-    steer = pad_terms(
-        lj.Sinusoids([[0.0], [0.5]], [[1.0], [1.0]], [[0.0], [np.pi / 2]]), ctl.amplitude.shape[-1]
+    os.makedirs(path, exist_ok=True)
+    env.update(
+        LDAP_JAX_CACHE=path,
+        JAX_COMPILATION_CACHE_DIR=path,
+        JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0.5",
+        JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="0",
     )
-    rho, psidot = float(car.rho), 5.0  # 0.5 m/s, straight ahead (sigma = 0)
-    qc, qdc = np.zeros(5), np.array([rho * psidot, 0.0, 0.0, psidot, 0.0])
-    car_runs = [(f"maneuver n={n}", q0, qdot0, ctl, T_FINAL / n) for n in conv]
-    car_runs += [("long", qc, qdc, steer, H_LONG), ("long h/2", qc, qdc, steer, H_LONG / 2)]
-    car_save = sorted(set(range(max(conv) + 1)) | set(range(0, n_long + 1, n_long // 1000)))
-    # snakeboard: a random maneuver at H_SHOW, and the gait
-    q0, qdot0, ctl = jax.jit(lambda k: sb.sample_maneuver(k))(key)
-    gait = pad_terms(snakeboard_gait(sb), ctl.amplitude.shape[-1])
-    n_sb = round(T_FINAL / H_GAIT)
-    sb_runs = [("maneuver", q0, qdot0, ctl, H_SHOW), ("gait", np.zeros(5), np.zeros(5), gait, H_GAIT)]
-    models = {
-        "car": dict(system=car, runs=car_runs, n_steps=n_long, save=car_save),
-        "snakeboard": dict(system=sb, runs=sb_runs, n_steps=n_sb, save="all"),
-    }
-    return models, conv
+    return env, path
 
 
-def run_group(job) -> tuple[tuple[str, str], list, float]:
-    """Every run of one integrator (or of the reference) on one model. The first call compiles;
-    the others reuse the program (same ``n_steps``, saved nodes and shapes)."""
-    (name, label), system, integ, runs, n_steps, save, ts = job
-    trajs = []
-    start = time.perf_counter()
-    for _, q0, qdot0, ctl, h in runs:
-        # the initial states are on the constraints by construction: skip the eager check
-        if integ is None:
-            tr = lj.reference(system, q0, qdot0, ctl, ts, check_constraints=False)
-        else:
-            tr = lj.simulate(
-                system,
-                q0,
-                qdot0,
-                ctl,
-                t_final=n_steps * h,
-                n_steps=n_steps,
-                integrator=integ,
-                save=save,
-                check_constraints=False,
-            )
-        trajs.append(jax.tree_util.tree_map(np.asarray, jax.block_until_ready(tr)))
-    return (name, label), trajs, time.perf_counter() - start
+def produced(stage: Stage, out: pathlib.Path) -> str:
+    """The stage's files under ``out``, by pattern (with a count where a pattern matched several)."""
+    found = []
+    for pattern in stage.outputs:
+        hits = sorted(out.glob(pattern))
+        if len(hits) == 1:
+            found.append(hits[0].name)
+        elif hits:
+            found.append(f"{pattern} ({len(hits)})")
+    return ", ".join(found) or "nothing"
 
 
-def run_all(models: dict, jobs: int) -> tuple[dict, dict]:
-    """All (model, integrator) groups and the references, ``jobs`` at a time (compilation
-    releases the GIL: two cores compile two programs at once). Returns the runs and the wall
-    time of each group (its compilation and runs)."""
-    ts = jnp.linspace(0.0, T_FINAL, round(T_FINAL / H_GAIT) + 1)
-    work = []
-    for name, m in models.items():
-        for label, integ in METHODS[name].items():
-            work.append(((name, label), m["system"], integ, m["runs"], m["n_steps"], m["save"], None))
-        ref_runs = [m["runs"][0]] + [r for r in m["runs"] if r[0] == "gait"]
-        work.append(((name, REFERENCE), m["system"], None, ref_runs, None, None, ts))
-    work.sort(key=lambda w: w[2] is None or isinstance(w[2], lj.RK4))  # the costliest first
-    with ThreadPoolExecutor(max(1, jobs)) as ex:
-        done = list(ex.map(run_group, work))
-    return {key: trajs for key, trajs, _ in done}, {key: sec for key, _, sec in done}
-
-
-def time_runs(models: dict) -> dict:
-    """Wall time of one compiled run per model and integrator (median of 3), for the table."""
-    out = {}
-    for name, m in models.items():
-        _, q0, qdot0, ctl, h = m["runs"][0]
-        for label, integ in METHODS[name].items():
-            secs = []
-            for _ in range(3):
-                start = time.perf_counter()
-                tr = lj.simulate(
-                    m["system"],
-                    q0,
-                    qdot0,
-                    ctl,
-                    t_final=m["n_steps"] * h,
-                    n_steps=m["n_steps"],
-                    integrator=integ,
-                    save=m["save"],
-                    check_constraints=False,
-                )
-                jax.block_until_ready(tr)
-                secs.append(time.perf_counter() - start)
-            out[(name, label)] = float(np.median(secs))
-    return out
-
-
-def take(runs: list, member: int, n_nodes: int | None = None):
-    """Run ``member`` of a group, its first ``n_nodes`` saved nodes."""
-    one = runs[member]
-    if n_nodes is None:
-        return one
-    return jax.tree_util.tree_map(lambda x: x[:n_nodes] if x.ndim >= 1 else x, one)
-
-
-def tenths(traj) -> tuple[float, float]:
-    """Largest abs(E - E0 - W) over the first and the last tenth of a run (after t0)."""
-    b = np.abs(np.asarray(traj.energy_balance))
-    t = np.asarray(traj.t)
-    first = b[(t > t[0]) & (t <= t[0] + 0.1 * (t[-1] - t[0]))]
-    return float(np.nanmax(first)), float(np.nanmax(b[t >= 0.9 * t[-1]]))
-
-
-def position_error(traj, ref) -> np.ndarray:
-    """``|(x, y) - (x, y)_ref|`` (m) at the trajectory's nodes (a subset of the reference's)."""
-    idx = np.searchsorted(np.asarray(ref.t), np.asarray(traj.t) - 1e-9)
-    return np.linalg.norm(np.asarray(traj.q)[:, :2] - np.asarray(ref.q)[idx, :2], axis=1)
-
-
-def save(fig, path: pathlib.Path, written: list) -> None:
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    written.append(path)
-
-
-def main() -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    parser.add_argument("--quick", action="store_true", help="small sizes (a 10^4-step long run)")
-    parser.add_argument("--out", default="results", help="output folder")
-    parser.add_argument("--seed", type=int, default=3, help="seed of the random maneuvers")
-    parser.add_argument("--jobs", type=int, default=2, help="programs compiled at once (default 2)")
-    args = parser.parse_args()
+def run_stage(stage: Stage, i: int, n: int, args, env: dict[str, str]) -> dict:
+    """Run one stage (its output to ``OUT/logs/<name>.log``) and print its line."""
     out = pathlib.Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    start = time.perf_counter()
+    log = out / "logs" / f"{stage.name.replace(' ', '_')}.log"
+    print(f"[{i}/{n}] {stage.name:<14} {stage.what} ...", end="", flush=True)
+    start, cpu = time.perf_counter(), _children_cpu()
+    with open(log, "w") as f:
+        command = stage.command(args.full, out)
+        rc = subprocess.run(command, stdout=f, stderr=subprocess.STDOUT, env=env).returncode
+    seconds, cpu = time.perf_counter() - start, _children_cpu() - cpu
+    headline = ""
+    if rc == 0:
+        try:
+            headline = stage.headline(out)
+        except (OSError, KeyError, ValueError, TypeError, StopIteration) as err:
+            headline = f"(no headline: {type(err).__name__} {err}; see {log})"
+    status = "ok" if rc == 0 else f"FAILED (exit {rc}; see {log})"
+    print(f" {seconds:4.0f} s (cpu {cpu:.0f} s)  {status}", flush=True)
+    return dict(stage=stage, seconds=seconds, cpu=cpu, ok=rc == 0, headline=headline, log=log)
 
-    models, conv = build(args)
-    results, group_seconds = run_all(models, args.jobs)
-    run_seconds = time_runs(models)
-    t_sim = time.perf_counter() - start
-    written: list[pathlib.Path] = []
 
-    # ---------------------------------------------------------------- the h = H_SHOW runs
-    n_show = round(T_FINAL / H_SHOW)
-    i_show = {"car": conv.index(n_show), "snakeboard": 0}
-    refs = {name: take(results[(name, REFERENCE)], 0) for name in models}
-    show = {
-        name: {label: take(results[(name, label)], i_show[name], n_show + 1) for label in METHODS[name]}
-        for name in models
-    }
-    car = models["car"]
-    conv_err = {}
-    for label in METHODS["car"]:
-        errs = []
-        for i, n in enumerate(conv):
-            tr = take(results[("car", label)], i, n + 1)
-            ok = int(tr.failure_index) >= n and np.all(np.isfinite(tr.q[-1]))
-            errs.append(float(np.linalg.norm(tr.q[-1, :2] - refs["car"].q[-1, :2])) if ok else np.nan)
-        conv_err[label] = (np.array([T_FINAL / n for n in conv]), np.array(errs))
+def _children_cpu() -> float:
+    """CPU seconds (user + system) of the finished child processes: on a shared machine the wall
+    time of a stage says more about the other processes than about it."""
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
 
-    # ---------------------------------------------------------------- quickstart_paths.png
-    fig, axes = plt.subplots(2, 2, figsize=(12.5, 10.0), height_ratios=[1.5, 1.0], layout="constrained")
-    for j, (name, m) in enumerate(models.items()):
-        paths = {REFERENCE: refs[name], **show[name]}
-        loc = "lower right" if name == "car" else "upper left"
-        plot_paths(axes[0, j], m["system"], paths, draw=REFERENCE, n_draw=5, legend="markers", legend_loc=loc)
-        axes[0, j].set_title(f"{name}: random maneuver (seed {args.seed}), h = {H_SHOW:g} s", fontsize=11)
-        plot_position_error(axes[1, j], refs[name], show[name], legend=False)
-        axes[1, j].set_title(f"{name}: position error against the reference, h = {H_SHOW:g} s", fontsize=11)
-    labels = [REFERENCE] + list(METHODS["car"])
-    handles = [
-        plt.Line2D([], [], **{"lw": 1.6, **style_for(lab, i)}, label=lab) for i, lab in enumerate(labels)
-    ]
-    fig.legend(handles=handles, loc="outside upper center", ncol=len(labels), fontsize=9, frameon=False)
-    save(fig, out / "quickstart_paths.png", written)
 
-    # ---------------------------------------------------------------- quickstart_diagnostics.png
-    fig = plot_diagnostics(show, references={name: (m["system"], refs[name]) for name, m in models.items()})
-    fig.suptitle(f"the random maneuvers of quickstart_paths.png, h = {H_SHOW:g} s", fontsize=11)
-    save(fig, out / "quickstart_diagnostics.png", written)
-
-    # ---------------------------------------------------------------- convergence.png
-    fig, ax = plt.subplots(figsize=(7.5, 5.2), layout="constrained")
-    plot_convergence(
-        conv_err,
-        ax=ax,
-        floor=FIT_FLOOR,
-        floor_label=f"below {FIT_FLOOR:g} m: not fitted (lj.reference: rtol = atol = 1e-11)",
-        ylabel=f"position error at t = {T_FINAL:g} s [m]",
-        title=f"car, random maneuver (seed {args.seed}): convergence against lj.reference",
-    )
-    save(fig, out / "convergence.png", written)
-
-    # ---------------------------------------------------------------- energy_long_run.png
-    names = [r[0] for r in car["runs"]]
-    long = {label: take(results[("car", label)], names.index("long")) for label in METHODS["car"]}
-    half = {label: take(results[("car", label)], names.index("long h/2")) for label in METHODS["car"]}
-    spans = {label: (tenths(long[label]), tenths(half[label])[1]) for label in long}
-    n_long = car["n_steps"]
-    roundoff = [lab for lab, ((_, last), last_half) in spans.items() if 0.5 < last_half / last < 2.0]
-    fig, ax = plt.subplots(figsize=(8.0, 5.0), layout="constrained")
-    note = f"\n(no change at h/2 for {', '.join(roundoff)}: round-off)" if roundoff else ""
-    plot_energy_error(
-        long,
-        ax=ax,
-        logx=True,
-        title=(
-            r"car steered without torque ($f_\psi = 0$, $\dot\sigma = 0.5\cos t$): no work, E conserved"
-            f"\n{n_long:,} steps of h = {H_LONG:g} s ({n_long * H_LONG:,.0f} s), "
-            f"$E_0$ = {float(long['RDP'].energy[0]):.3g} J{note}"
-        ),
-    )
-    save(fig, out / "energy_long_run.png", written)
-
-    # ---------------------------------------------------------------- the gait
-    sb = models["snakeboard"]["system"]
-    n_gait = round(T_FINAL / H_GAIT)
-    gait = take(results[("snakeboard", "RDP")], 1, n_gait + 1)
-    gait_ref = take(results[("snakeboard", REFERENCE)], 1)
-    fig = plot_shape_loop(
-        gait,
-        sb,
-        title=(
-            r"snakeboard gait from rest: $f_\psi = -0.2\cos 2t$ N m, "
-            r"$f_\phi$ giving $\phi = 0.3(1 - \cos 2t)$ rad"
-            f" (RDP, h = {H_GAIT:g} s)"
-        ),
-    )
-    save(fig, out / "snakeboard_gait_loop.png", written)
-    t_gif = time.perf_counter()
-    path = out / "snakeboard_gait.gif"
-    animate(
-        {f"RDP, h = {H_GAIT:g} s": gait, REFERENCE: gait_ref},
-        sb,
-        path,
-        fps=10,
-        every=2,
-        title="snakeboard gait from rest (true size)",
-    )
-    written.append(path)
-    t_gif = time.perf_counter() - t_gif
-
-    # ---------------------------------------------------------------- quickstart.md
+def summary(done: list[dict], out: pathlib.Path, total: float, cache: str | None) -> str:
+    """The closing table (markdown): what each stage wrote and its headline numbers."""
+    cpu = sum(d["cpu"] for d in done)
     lines = [
-        "# Quickstart: the car and the snakeboard under RDP, against the diffrax reference and RK4",
+        f"# ldap_jax demo: {len(done)} stages in {total:.0f} s (cpu {cpu:.0f} s)",
         "",
-        f"Written by `scripts/demo.py{' --quick' if args.quick else ''}` (seed {args.seed}), with the "
-        "default `lj.Car()` and `lj.Snakeboard()`: one random maneuver per model "
-        f"(`system.sample_maneuver`), {T_FINAL:g} s at h = {H_SHOW:g} s (N = {n_show}), errors against "
-        "`lj.reference` (diffrax Dopri8, rtol = atol = 1e-11). RDP orders 4 and 6 compose 5 and 9 "
-        "RDP substeps per step.",
+        f"Everything is under `{out}/` (logs in `{out}/logs/`). Persistent compilation cache: "
+        + (f"`{cache}`." if cache else "off."),
         "",
-        "| model | integrator | final position error [m] | max position error [m] | max abs(E - E_ref) [J] "
-        "| max abs(E - E0 - W) [J] | fitted order |",
-        "|---|---|---|---|---|---|---|",
+        "| stage | time | wrote | headline |",
+        "|---|---|---|---|",
     ]
-    for name, m in models.items():
-        ref = refs[name]
-        e_ref = np.asarray(jax.vmap(m["system"].energy)(ref.q, ref.qdot))
-        for label in METHODS[name]:
-            tr = show[name][label]
-            err = position_error(tr, ref)
-            idx = np.searchsorted(np.asarray(ref.t), np.asarray(tr.t) - 1e-9)
-            d_e = np.nanmax(np.abs(np.asarray(tr.energy) - e_ref[idx]))
-            p = f"{fitted_order(*conv_err[label], floor=FIT_FLOOR):.2f}" if name == "car" else "-"
-            lines.append(
-                f"| {name} | {label} | {err[-1]:.2e} | {np.nanmax(err):.2e} | {d_e:.2e} | "
-                f"{np.nanmax(np.abs(tr.energy_balance)):.2e} | {p} |"
-            )
-    lines += [
-        "",
-        f"Fitted order (car): least squares of log(error at {T_FINAL:g} s) against log(h) over "
-        f"h = {', '.join(f'{T_FINAL / n:g}' for n in conv)} s, errors below {FIT_FLOOR:g} m excluded "
-        "(`convergence.png`). The work W is the trapezoidal rule on the nodes (second order): on "
-        "these forced runs its quadrature error, not the integrator, sets abs(E - E0 - W) of the "
-        "higher-order methods; abs(E - E_ref) shows their accuracy.",
-        "",
-        f"## Long run: the car steered without torque, {n_long:,} steps of h = {H_LONG:g} s",
-        "",
-        "No work is done (`f_psi = 0`; the steering is kinematic), so E is conserved. Largest "
-        "abs(E - E0) [J] over the first and the last tenth of the run, and over the last tenth of "
-        "the same number of steps at h/2 (a truncation error shrinks by 2^p at h/2; round-off, "
-        "which grows with the number of steps, does not):",
-        "",
-        "| integrator | first tenth | last tenth | growth | last tenth at h/2 |",
-        "|---|---|---|---|---|",
-    ]
-    for label, ((first, last), last_half) in spans.items():
-        lines.append(f"| {label} | {first:.2e} | {last:.2e} | {last / first:.2g}x | {last_half:.2e} |")
-    dist = float(np.hypot(*gait.q[-1, :2]))
-    gait_err = float(np.linalg.norm(gait.q[-1, :2] - gait_ref.q[-1, :2]))
-    lines += [
-        "",
-        f"## Snakeboard gait ({T_FINAL:g} s from rest, RDP at h = {H_GAIT:g} s)",
-        "",
-        f"The board travels {dist:.2f} m and turns by {np.degrees(float(gait.q[-1, 2])):.0f} deg; its "
-        f"final position differs from the reference's by {gait_err:.1e} m; phi stays in "
-        f"[{np.nanmin(gait.q[:, 4]):.2f}, {np.nanmax(gait.q[:, 4]):.2f}] rad "
-        "(`snakeboard_gait_loop.png`, `snakeboard_gait.gif`).",
-        "",
-        "## Cost",
-        "",
-        "Wall times on this machine. Per model and integrator one program runs every run; "
-        f"{args.jobs} program(s) compiled at once. 'group' is its compilation and all its runs; "
-        "'one run' the median of 3 runs after compilation.",
-        "",
-        "| model | integrator | runs x steps | group [s] | one run [ms] | us per step |",
-        "|---|---|---|---|---|---|",
-    ]
-    for name, m in models.items():
-        k, n = len(m["runs"]), m["n_steps"]
-        for label in METHODS[name]:
-            run = run_seconds[(name, label)]
-            lines.append(
-                f"| {name} | {label} | {k} x {n} | {group_seconds[(name, label)]:.1f} | {1e3 * run:.1f} | "
-                f"{1e6 * run / n:.2f} |"
-            )
-        lines.append(f"| {name} | {REFERENCE} | 2 | {group_seconds[(name, REFERENCE)]:.1f} | - | - |")
-    total = time.perf_counter() - start
-    lines += [
-        "",
-        f"Total {total:.0f} s: simulations {t_sim:.0f} s (mostly compilation), figures "
-        f"{total - t_sim - t_gif:.0f} s, the GIF {t_gif:.0f} s.",
-    ]
-    path = out / "quickstart.md"
-    path.write_text("\n".join(lines) + "\n")
-    written.append(path)
-    print("\n".join(lines))
-    print(f"\nwrote ({total:.0f} s):")
-    for p in written:
-        print(f"  {p}")
+    for d in done:
+        wrote = produced(d["stage"], out) if d["ok"] else f"failed: see `{d['log']}`"
+        lines.append(f"| {d['stage'].name} | {d['seconds']:.0f} s | {wrote} | {d['headline']} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--full", action="store_true", help="the paper-size versions (hours)")
+    p.add_argument("--out", default="results", help="output folder (default: results)")
+    p.add_argument("--only", default=None, help="comma-separated stage names (default: all; see --list)")
+    p.add_argument("--no-cache", action="store_true", help="without JAX's persistent compilation cache")
+    p.add_argument("--list", action="store_true", help="list the stages and their commands, and exit")
+    args = p.parse_args(argv)
+    names = [s.name for s in STAGES]
+    if args.only is None:
+        chosen = [s.name for s in STAGES if args.full or s.in_quick]
+    else:
+        chosen = [s.strip() for s in args.only.split(",")]
+    unknown = [s for s in chosen if s not in names]
+    if unknown:
+        p.error(f"--only: unknown stages {unknown}; choose among {', '.join(names)}")
+    stages = [s for s in STAGES if s.name in chosen]
+    skipped = [s.name for s in STAGES if s.name not in chosen]
+    out = pathlib.Path(args.out)
+    if args.list:
+        for s in stages:
+            print(f"{s.name:<14} {' '.join(s.command(args.full, out)[1:])}")
+        return 0
+    (out / "logs").mkdir(parents=True, exist_ok=True)
+    env, cache = cache_environment(not args.no_cache)
+    print(f"ldap_jax demo ({'full' if args.full else 'quick'} settings) -> {out}/", flush=True)
+    start = time.perf_counter()
+    done = [run_stage(s, i + 1, len(stages), args, env) for i, s in enumerate(stages)]
+    text = summary(done, out, time.perf_counter() - start, cache)
+    if skipped:
+        text += (
+            f"\nNot run: {', '.join(skipped)} (`python scripts/demo.py --only "
+            f"'{','.join(skipped)}'` at quick settings; `--full` runs every stage).\n"
+        )
+    (out / "demo.md").write_text(text)
+    print("\n" + text)
+    return 0 if all(d["ok"] for d in done) else 1
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -9,7 +9,7 @@ every axis is labelled with units (SI: m, rad, s, J).
 * Diagnostics: :func:`plot_diagnostics` (energy and work, the energy balance, the momentum, one
   row per system), :func:`plot_energy_error` (long-run ``|E - E0 - W|``).
 * Accuracy: :func:`plot_convergence` (error against step, reference slopes),
-  :func:`plot_work_precision` (error against runtime).
+  :func:`plot_work_precision` (error against runtime; takes a study's rows as they are).
 * Gaits: :func:`plot_shape_loop` (shape-space loop, momentum, path), :func:`plot_gait_family`
   (a family's trade-off curve and efficiency).
 * Animation: :func:`animate` (a GIF; in a notebook ``IPython.display.Image(filename=path)``).
@@ -21,6 +21,7 @@ from ._common import style_for as style_for
 from ._convergence import fitted_order as fitted_order
 from ._convergence import plot_convergence as plot_convergence
 from ._convergence import plot_work_precision as plot_work_precision
+from ._convergence import study_curves as study_curves
 from ._diagnostics import plot_diagnostics as plot_diagnostics
 from ._diagnostics import plot_energy_error as plot_energy_error
 from ._family import plot_gait_family as plot_gait_family
@@ -47,6 +48,7 @@ __all__ = [
     "plot_shape_loop",
     "plot_work_precision",
     "rectangle",
+    "study_curves",
     "style_for",
     "vehicle_parts",
 ]

@@ -18,6 +18,7 @@ from PIL import Image
 
 from ..systems import AbstractSystem
 from ._common import as_tq, is_reference, style_for, tracks
+from ._paths import auto_scale
 from ._vehicles import Drawer, VehicleArtists, vehicle_parts, vehicle_size
 
 __all__ = ["animate", "frame_indices"]
@@ -91,7 +92,7 @@ def animate(
     title: str | None = None,
     labels: Sequence[str] | None = None,
     styles: Mapping[str, dict] | None = None,
-    scale: float = 1.0,
+    scale: float | str = "auto",
     vehicle: Drawer | None = None,
     max_frames: int = 150,
     dpi: float = 80.0,
@@ -124,7 +125,9 @@ def animate(
         title: axes title.
         labels: labels for a sequence of trajectories.
         styles: label -> keyword arguments (``color``) for a trajectory's trail and vehicle.
-        scale: drawing scale of the vehicle (1: true size).
+        scale: drawing scale of the vehicle (1: true size), or ``"auto"`` (the default, as in
+            :func:`~ldap_jax.plotting.plot_paths`): the vehicle's length is 12% of the paths'
+            extent, at most true size. The legend says the scale when it is not true size.
         vehicle: custom drawing ``q -> parts`` (see :func:`~ldap_jax.plotting.vehicle_parts`).
         max_frames: frame budget used when ``every`` is None.
         dpi: resolution (dots per inch); the GIF is ``figsize * dpi`` pixels.
@@ -134,7 +137,7 @@ def animate(
         ``path`` as a string.
 
     Raises:
-        ValueError: empty input, bad ``every``/``fps``/``goal``.
+        ValueError: empty input, bad ``every``/``fps``/``goal``/``scale``.
 
     Example:
         >>> import ldap_jax.plotting as lp
@@ -171,6 +174,13 @@ def animate(
         raise ValueError("no finite positions to animate")
     if goal is not None:
         xy = np.concatenate([xy, np.asarray(goal, float)[None, :2]])
+    if isinstance(scale, str):
+        if scale != "auto":
+            raise ValueError(f"'scale' must be a positive number or 'auto', got {scale!r}")
+        scale = auto_scale(system, xy) if vehicle is None else 1.0
+    elif not scale > 0:
+        raise ValueError(f"'scale' must be a positive number or 'auto', got {scale!r}")
+    scale = float(scale)
     if vehicle is not None:
         pts = np.concatenate([p.xy for p in vehicle_parts(system, q_main[0], vehicle=vehicle)])
         margin = 0.6 * float(np.max(np.ptp(pts, axis=0)))
@@ -231,12 +241,15 @@ def animate(
         artists.append((tt, q, color, lc, veh))
         if label:
             handles.append(Line2D([], [], color=color, lw=2.0, alpha=0.55 if ref else 1.0, label=label))
+    notes = ["trail fades with age"] if trail else []
+    if vehicle is None and not np.isclose(scale, 1.0):
+        notes.append(f"vehicle drawn at {scale:.2g}x size")
     ax.legend(
         handles=handles,
         loc="upper left",
         bbox_to_anchor=(1.01, 1.0),
         fontsize=8,
-        title="trail fades with age" if trail else None,
+        title="\n".join(notes) or None,
         title_fontsize=7,
         frameon=False,
     )

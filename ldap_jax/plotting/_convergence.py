@@ -13,7 +13,7 @@ from matplotlib.ticker import NullFormatter
 
 from ._common import root_figure, style_for
 
-__all__ = ["plot_convergence", "plot_work_precision", "fitted_order"]
+__all__ = ["plot_convergence", "plot_work_precision", "study_curves", "fitted_order"]
 
 
 def _xy(value: Any, label: str, *, pairs_first: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -133,13 +133,49 @@ def plot_convergence(
     return root_figure(ax)
 
 
+def study_curves(
+    rows: Sequence[Mapping[str, Any]], error: str = "final_error_median"
+) -> tuple[dict[str, list[tuple[float, float]]], dict[str, list[str]]]:
+    """Work-precision curves from rows of :func:`ldap_jax.study.run_study` (or of a ``sweep.csv``
+    read back by :func:`ldap_jax.study.read_csv`): one curve per method, of ``(seconds, error)``
+    pairs, with the runtime converted from the rows' microseconds (``runtime_us``) to seconds.
+
+    Args:
+        rows: study rows (``model``, ``duration``, ``method``, ``n_steps``, ``runtime_us`` and
+            the ``error`` column).
+        error: the error column to plot (m), e.g. ``"final_error_median"`` or ``"max_error_median"``.
+
+    Returns:
+        ``(curves, annotations)`` for :func:`plot_work_precision`: label -> pairs, and label ->
+        ``"N=..."`` per point. The label is the method, prefixed by the model and the duration
+        when the rows hold more than one of them.
+
+    Raises:
+        ValueError: a row without one of those columns.
+    """
+    needed = ("model", "duration", "method", "n_steps", "runtime_us", error)
+    for row in rows:
+        missing = [k for k in needed if k not in row]
+        if missing:
+            raise ValueError(f"'rows': a study row lacks {missing} (got keys {sorted(row)})")
+    cases = {(r["model"], float(r["duration"])) for r in rows}
+    curves: dict[str, list[tuple[float, float]]] = {}
+    notes: dict[str, list[str]] = {}
+    for r in sorted(rows, key=lambda r: (r["model"], float(r["duration"]), r["method"], int(r["n_steps"]))):
+        label = r["method"] if len(cases) == 1 else f"{r['model']}, {float(r['duration']):g} s: {r['method']}"
+        curves.setdefault(label, []).append((1e-6 * float(r["runtime_us"]), float(r[error])))
+        notes.setdefault(label, []).append(f"N={int(r['n_steps'])}")
+    return curves, notes
+
+
 def plot_work_precision(
-    curves: Mapping[str, Any],
+    curves: Mapping[str, Any] | Sequence[Mapping[str, Any]],
     *,
     ax: Axes | None = None,
     annotations: Mapping[str, Sequence[str]] | None = None,
-    xlabel: str = "runtime [s]",
-    ylabel: str = "position error [m]",
+    error: str = "final_error_median",
+    xlabel: str = "runtime per trajectory [s]",
+    ylabel: str | None = None,
     title: str | None = None,
     styles: Mapping[str, dict] | None = None,
 ) -> Figure:
@@ -148,17 +184,35 @@ def plot_work_precision(
 
     Args:
         curves: label -> sequence of ``(seconds, error)`` pairs (or ``(seconds_list, errors)``);
-            non-finite points are skipped.
+            or the rows of a study (:func:`ldap_jax.study.run_study`), plotted as they are: one
+            curve per method, runtimes in seconds, each point annotated with its ``N``
+            (:func:`study_curves`). Non-finite points are skipped.
         ax: axes to draw into (default: a new figure).
         annotations: label -> one text per point (in the given order, e.g. ``"N=100"``).
-        xlabel: x label (with units).
-        ylabel: y label (with units).
+        error: with study rows, the error column to plot (default the median final error).
+        xlabel: x label (with units: the runtimes are in seconds).
+        ylabel: y label (with units; default ``"position error [m]"``, or the study's error
+            column).
         title: axes title.
         styles: label -> keyword arguments for ``Axes.plot``.
 
     Returns:
         The figure.
+
+    Raises:
+        ValueError: a curve that is neither pairs nor two sequences; a study row without the
+            columns it needs.
+
+    Example:
+        >>> from ldap_jax import study
+        >>> rows = study.run_study(study.StudyConfig(models=("snakeboard",), durations=(10.0,),
+        ...     methods=("rdp", "rk2"), resolutions=(250, 1000), runs=8))
+        >>> fig = plot_work_precision(rows, title="snakeboard, 10 s")
     """
+    if not isinstance(curves, Mapping):
+        curves, notes = study_curves(curves, error)
+        annotations = notes if annotations is None else annotations
+        ylabel = ylabel or f"{error.replace('_', ' ')} [m]"
     styles = styles or {}
     annotations = annotations or {}
     if ax is None:
@@ -177,7 +231,7 @@ def plot_work_precision(
                         txt, (s, e), xytext=(4, 3), textcoords="offset points", fontsize=6, color="0.3"
                     )
     ax.set_xlabel(xlabel)
-    ax.set_ylabel(ylabel)
+    ax.set_ylabel(ylabel or "position error [m]")
     if title is not None:
         ax.set_title(title, fontsize=10)
     ax.grid(True, which="both", alpha=0.25)
