@@ -267,3 +267,28 @@ def test_process_options_are_checked_before_jax(argv, env, flag, tmp_path):
     run = _sweep([SWEEP, *argv, "--out", str(tmp_path / "out")], tmp_path, timeout=60, env=environ)
     assert run.returncode == 2 and flag in run.stderr, run.stderr[-2000:]
     assert "Traceback" not in run.stderr
+
+
+@pytest.mark.parametrize(
+    "argv, flag",
+    [
+        (["--coordinator", "h:1", "--num-processes", "2", "--process-id", "0"], "--num-processes"),
+        (["--family", "2", "--solver", "optimize"], "--family"),
+        (
+            ["--family", "2", "--coordinator", "h:1", "--num-processes", "2", "--process-id", "5"],
+            "--process-id",
+        ),
+    ],
+)
+def test_optimize_family_options_are_checked_before_jax(argv, flag, tmp_path):
+    """scripts/optimize.py: several processes run only a --family (lc.solve), and the process
+    options are checked as sweep.py's are, before JAX is imported."""
+    (tmp_path / "fakejax").mkdir()
+    (tmp_path / "fakejax" / "jax.py").write_text("raise ImportError('jax imported before the flags')\n")
+    environ = {k: v for k, v in os.environ.items() if not k.startswith("JAX_")}
+    environ.update(PYTHONPATH=str(tmp_path / "fakejax"))
+    script = os.path.join(ROOT, "scripts", "optimize.py")
+    argv = [script, "--model", "car", "--task", "parallel_park", *argv, "--out", str(tmp_path / "out")]
+    run = _sweep(argv, tmp_path, timeout=60, env=environ)
+    assert run.returncode == 2 and f"argument {flag}" in run.stderr, run.stderr[-2000:]
+    assert "Traceback" not in run.stderr
