@@ -13,7 +13,10 @@ from .._controls import AbstractControls, Sinusoids
 from .._sharding import global_batch
 from ..systems import AbstractSystem, Snakeboard
 
-__all__ = ["sample_maneuvers", "global_maneuvers"]
+__all__ = ["sample_maneuvers", "global_maneuvers", "SAMPLE_BLOCK"]
+
+#: Members sampled by one call of :func:`global_maneuvers`'s compiled sampling program.
+SAMPLE_BLOCK = 64
 
 
 def _zero_steer_rate(system: Snakeboard, q0: Array, qdot0: Array, ctl: Sinusoids):
@@ -60,7 +63,9 @@ def global_maneuvers(
     ``mesh`` (default: all devices of all processes), each process sampling only the members its
     devices hold (:func:`ldap_jax.global_batch`: padded to a multiple of the devices with copies
     of member ``n - 1``). Member ``i`` is the same as ``sample_maneuvers(system, n, seed)``'s,
-    up to the round-off of a batch of another size.
+    up to the round-off of a batch of another size. Members are sampled in blocks of a fixed size
+    (:data:`SAMPLE_BLOCK`): one compiled program for every batch size and number of devices, and
+    the same numbers whatever the number of processes.
 
     Raises:
         ValueError: ``n < 1``.
@@ -70,7 +75,13 @@ def global_maneuvers(
     keys = np.asarray(jax.random.split(jax.random.PRNGKey(seed), n))  # 8 bytes a member
 
     def make(indices: np.ndarray):
-        return _sample(system, keys[indices], zero_steer_rate)
+        parts = []
+        for start in range(0, len(indices), SAMPLE_BLOCK):
+            idx = indices[start : start + SAMPLE_BLOCK]
+            block = np.concatenate([idx, np.full(SAMPLE_BLOCK - len(idx), idx[-1])])
+            man = _sample(system, keys[block], zero_steer_rate)
+            parts.append(jax.tree_util.tree_map(lambda x, k=len(idx): np.asarray(x)[:k], man))
+        return jax.tree_util.tree_map(lambda *xs: np.concatenate(xs), *parts)
 
     return global_batch(make, n, mesh=mesh)
 
