@@ -33,6 +33,7 @@ from ._reference import Solution as Solution
 from ._reference import reference as reference
 from ._results import RESULTS as RESULTS
 from ._sharding import device_mesh as device_mesh
+from ._sharding import global_batch as global_batch
 from ._sharding import shard_vmap as shard_vmap
 from ._sharding import use_cpu_cores as use_cpu_cores
 from ._simulate import Trajectory as Trajectory

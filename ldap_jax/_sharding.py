@@ -1,4 +1,5 @@
-"""A batch split over devices: :func:`shard_vmap`, and the one-axis mesh it uses by default.
+"""A batch split over devices: :func:`shard_vmap`, the one-axis mesh it uses by default, and
+:func:`global_batch`, a batch whose processes each build only their own rows.
 
 ``jax.vmap`` runs a batch as one program on one device; on a CPU that is one core, whatever the
 machine has. :func:`shard_vmap` is ``jax.vmap`` with the batch split over the devices of a mesh
@@ -6,6 +7,13 @@ by ``jax.shard_map``, so that each device runs the vmapped function on its own m
 own loops: a ``while_loop`` under ``vmap`` runs until the slowest member in the batch is done,
 and here until the slowest member on each device is. On a CPU, make one device per core before
 JAX starts: :func:`use_cpu_cores`.
+
+When JAX runs as several processes (``jax.distributed.initialize``, e.g. through
+:mod:`ldap_jax.launch`), ``jax.devices()`` lists the devices of every process and the same
+functions split a batch over all of them: each process runs the members its own devices hold,
+and the results are global arrays (each process holds its devices' rows). Arguments are then
+global arrays, best built by :func:`global_batch` so that no process makes the whole batch, or
+host arrays with the same value in every process.
 """
 
 from __future__ import annotations
@@ -20,11 +28,11 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import Mesh, PartitionSpec
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from ._compilation_cache import jit
 
-__all__ = ["device_mesh", "shard_vmap", "use_cpu_cores"]
+__all__ = ["device_mesh", "global_batch", "shard_vmap", "use_cpu_cores"]
 
 _AXIS = "batch"
 _COUNT_FLAG = "--xla_force_host_platform_device_count"
@@ -77,6 +85,70 @@ def device_mesh(devices: Sequence[jax.Device] | None = None) -> Mesh:
     every GPU of the node, or of every host after ``jax.distributed.initialize()``)."""
     devices = jax.devices() if devices is None else list(devices)
     return Mesh(np.asarray(devices), (_AXIS,))
+
+
+def global_batch(make: Callable[[np.ndarray], Any], n: int, *, mesh: Mesh | None = None) -> Any:
+    """A batch of ``n`` members as global arrays split over the devices of ``mesh`` along their
+    leading axis (``NamedSharding(mesh, P("batch"))``), of which each process builds only the rows
+    of its own devices: in a run of several processes, no process holds the whole batch.
+
+    The batch is padded to a multiple of the number of devices with copies of its last member
+    (as :func:`shard_vmap` pads); ``make`` is called once per device of this process with the
+    global indices of that device's rows, so a batch made from a seed and member indices is the
+    same whatever the number of processes, and ``shard_vmap`` takes it without padding again.
+
+    Args:
+        make: ``make(indices) -> pytree``: the members ``indices`` (a NumPy ``int64`` array of
+            global indices in ``[0, n)``), every leaf an array with leading size
+            ``len(indices)``; the same tree structure, trailing shapes and dtypes for every call.
+        n: the number of members.
+        mesh: a mesh with one axis (default: :func:`device_mesh`, the devices of all processes).
+
+    Returns:
+        ``make``'s pytree of global arrays, leading size ``n`` rounded up to a multiple of the
+        number of devices; rows ``n`` and beyond repeat member ``n - 1``.
+
+    Raises:
+        ValueError: ``n`` is not a positive integer, ``mesh`` has more than one axis, or
+            ``make`` returns leaves of another leading size.
+
+    Example:
+        >>> keys = lambda idx: jax.random.split(jax.random.PRNGKey(0), 1000)[idx]
+        >>> batch = lj.global_batch(lambda idx: jax.vmap(car.sample_maneuver)(keys(idx)), 1000)
+    """
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+        raise ValueError(f"'n' must be a positive integer, got {n!r}")
+    mesh = device_mesh() if mesh is None else mesh
+    if len(mesh.axis_names) != 1:
+        raise ValueError(f"'mesh' must have one axis, got {mesh.axis_names}")
+    size = mesh.devices.size
+    n_padded = -(-int(n) // size) * size
+    sharding = NamedSharding(mesh, PartitionSpec(mesh.axis_names[0]))
+    # the rows of each of this process's devices (a device may appear once in a mesh)
+    rows = sharding.addressable_devices_indices_map((n_padded,))
+    if not rows:
+        raise ValueError(f"'mesh' holds no device of this process (process {jax.process_index()})")
+    shards = {}
+    for device, index in rows.items():
+        indices = np.minimum(np.arange(n_padded)[index[0]], n - 1)
+        part = make(indices)
+        for leaf in jax.tree_util.tree_leaves(part):
+            if np.shape(leaf)[:1] != (len(indices),):
+                raise ValueError(
+                    f"'make' must return leaves with leading size len(indices) = {len(indices)}, "
+                    f"got shape {np.shape(leaf)}"
+                )
+        shards[device] = jax.device_put(part, device)
+    parts = list(shards.values())
+    treedef = jax.tree_util.tree_structure(parts[0])
+    leaves = [jax.tree_util.tree_leaves(p) for p in parts]
+
+    def assemble(i: int) -> jax.Array:
+        first = leaves[0][i]
+        shape = (n_padded, *first.shape[1:])
+        return jax.make_array_from_single_device_arrays(shape, sharding, [ls[i] for ls in leaves])
+
+    return jax.tree_util.tree_unflatten(treedef, [assemble(i) for i in range(len(leaves[0]))])
 
 
 def shard_vmap(

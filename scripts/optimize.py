@@ -11,11 +11,20 @@ replayed on the high-accuracy reference ``lj.reference``. Writes ``OUT/optimize_
 (final_position_error [m], final_heading_error [rad] of the replay, the cost terms, iterations,
 wall_s, ...), ``OUT/optimize_<model>_<task>.png`` (path, controls, convergence) and
 ``OUT/<task>.gif`` (an animation of the optimized maneuver on the reference).
+
+``--family N`` solves a family of N tasks that differ in one array (see :func:`family_values`:
+the goal, for now) by ``lc.solve`` in one batched program split over the devices of every
+process (``lj.shard_vmap``), and writes ``OUT/optimize_<model>_<task>_family.json`` (each
+member's array, convergence, iterations, cost, constraint violation). It runs over several
+processes as ``scripts/sweep.py`` does (``--coordinator --num-processes --process-id``, or
+``python -m ldap_jax.launch -n P -- python scripts/optimize.py ...``), each process building only
+its own members; only process 0 writes.
 """
 
 import argparse
 import json
 import math
+import os
 import pathlib
 import sys
 import time
@@ -202,7 +211,26 @@ def parse_args(argv=None):
         action="store_true",
         help="also optimize with the other integrators at the same step and replay each",
     )
+    parser.add_argument(
+        "--family", type=_positive_int, default=None, metavar="N", help="solve a family of N tasks (lc.solve)"
+    )
+    parser.add_argument(
+        "--cpu-devices",
+        type=_positive_int,
+        default=None,
+        help="XLA host devices on CPU (--family: all cores)",
+    )
+    here = os.path.dirname(os.path.abspath(__file__))
+    if here not in sys.path:
+        sys.path.insert(0, here)  # for _launch.py: the process options, ldap_jax.launch's
+    import _launch
+
+    options = _launch.launch_options()
+    options.add_arguments(parser)
     args = parser.parse_args(argv)
+    options.check_arguments(args, parser.error)
+    if args.distributed and args.family is None:
+        parser.error("argument --num-processes: several processes run only a --family")
     if args.task not in MODEL_TASKS[args.model]:
         parser.error(
             f"argument --task: {args.task} is not a task of --model {args.model}; its tasks: "
@@ -215,12 +243,16 @@ def parse_args(argv=None):
             f"argument --solver: solve needs per-step controls; {args.task} is a periodic gait: "
             "use --solver optimize"
         )
+    if args.family is not None and args.solver != "solve":
+        parser.error(
+            f"argument --family: a family is solved by lc.solve; {args.task} is solved by lc.optimize"
+        )
     if args.solver == "solve" and args.starts > 1:
         parser.error(
             "argument --starts: multi-start applies to --solver optimize (lc.solve starts from one guess)"
         )
     for flag, path in (("--out", args.out), ("--cache", args.cache)):
-        if path is None:
+        if path is None or args.process_id not in (0, None):  # only process 0 writes
             continue
         if pathlib.Path(path).exists() and not pathlib.Path(path).is_dir():
             parser.error(f"argument {flag}: {path!r} exists and is not a directory")
@@ -228,12 +260,83 @@ def parse_args(argv=None):
             pathlib.Path(path).mkdir(parents=True, exist_ok=True)
         except OSError as err:
             parser.error(f"argument {flag}: cannot create {path!r}: {err}")
+    args.error = parser.error
     return args
+
+
+#: --family: the members' goals spread over this much (x [m], y [m], theta [rad]) around the task's
+FAMILY_SPREAD = (0.2, 0.2, 0.2)
+
+
+def family_values(task, indices, size: int):
+    """The arrays of members ``indices`` of a family of ``size`` tasks around ``task``: here its
+    goal, moved along a line through it (``(1 - 2 i / (size - 1)) * FAMILY_SPREAD``). Each process
+    calls it for its own members only. Point this and :func:`family_member` at another family
+    (a bound, the mass, a gait's speed) to solve that one instead."""
+    s = np.linspace(1.0, -1.0, size)[indices] if size > 1 else np.zeros(len(indices))
+    return np.asarray(task.goal)[None] + s[:, None] * np.asarray(FAMILY_SPREAD)[None]
+
+
+def family_member(task, value):
+    """The family's task with array ``value`` (traced: inside the batched program)."""
+    return task.with_options(goal=value)
+
+
+def solve_family(args) -> int:
+    """``--family``: every member solved by ``lc.solve`` in one program over all devices of all
+    processes, each process building its own members; process 0 writes the members' results."""
+    from ldap_jax import launch
+
+    if args.cpu_devices != 1:
+        lj.use_cpu_cores(args.cpu_devices)  # before JAX starts (default: one device per core)
+    jax.config.update("jax_enable_preemption_service", False)  # SIGTERM stops a process (sweep.py)
+    keys = ("model", "task", "family", "integrator", "iterations", "n_steps", "quick")
+    settings = {f"--{k.replace('_', '-')}": getattr(args, k) for k in keys}
+    lead = launch.start(args, args.error, settings) == 0
+    kw = {} if args.n_steps is None else {"n_steps": args.n_steps}
+    task = lc.TASKS[(args.model, args.task)](integrator=INTEGRATORS[args.integrator](), **kw)
+    n_iter = 1000 if args.iterations is None else args.iterations
+    values = lj.global_batch(lambda idx: family_values(task, idx, args.family), args.family)
+
+    def member(task, value):
+        return lc.solve(family_member(task, value), max_iterations=n_iter)
+
+    t = time.perf_counter()
+    sol = jax.block_until_ready(lj.shard_vmap(member, in_axes=(None, 0))(task, values))
+    wall = time.perf_counter() - t
+    from jax.experimental import multihost_utils
+
+    fields = {"value": values, "converged": sol.converged, "iterations": sol.iterations, "cost": sol.cost}
+    fields.update(max_violation=sol.max_violation, result=sol.result._value)
+    gathered = {
+        k: np.asarray(multihost_utils.process_allgather(v, tiled=True))[: args.family]
+        for k, v in fields.items()
+    }
+    if not lead:
+        return 0
+    members = [{k: gathered[k][i].tolist() for k in gathered} for i in range(args.family)]
+    record = {
+        "model": args.model,
+        "task": args.task,
+        "family": args.family,
+        "family_array": "goal (x, y, theta)",
+        "processes": jax.process_count(),
+        "devices": jax.device_count(),
+        "wall_s": wall,
+        "converged": int(np.sum(gathered["converged"])),
+        "members": members,
+    }
+    path = pathlib.Path(args.out) / f"optimize_{args.model}_{args.task}_family.json"
+    path.write_text(json.dumps(record, indent=1) + "\n")
+    print(f"{record['converged']} of {args.family} members converged in {wall:.1f} s; wrote {path}")
+    return 0
 
 
 def main(argv=None) -> int:
     args = parse_args(argv)
     _load()
+    if args.family is not None:
+        return solve_family(args)
     out = pathlib.Path(args.out)
     if args.cache:
         lj.enable_compilation_cache(args.cache)

@@ -10,8 +10,20 @@ model and duration, ``OUT/sweep_<model>_<seconds>s.png``.
 The batch axis is sharded over all JAX devices; on a CPU-only machine the script exposes one XLA
 host device per core (``--cpu-devices``), so both cores of a 2-core machine work.
 
+Each point's row is also kept in ``OUT/chunks/`` as soon as it is done: a sweep stopped and
+started again with the same ``--out`` and settings computes only the points it lacks
+(``--fresh`` computes them all again).
+
+Over several processes (JAX's multi-controller runtime; on many machines, one process per
+machine), the batch is split over the devices of every process, each process sampling and
+running its own devices' maneuvers; only process 0 writes files and prints the tables. Every
+process gets the same options plus ``--coordinator HOST:PORT --num-processes P --process-id I``
+(or ``--cluster auto`` under Slurm or ``mpirun``); to try it on one machine,
+``python -m ldap_jax.launch -n 2 -- python scripts/sweep.py ARGS`` starts the processes.
+
     python scripts/sweep.py --quick --out results          # about a minute or two
     python scripts/sweep.py --out results                  # the full study (1000 maneuvers)
+    python -m ldap_jax.launch -n 2 -- python scripts/sweep.py --quick --out results
 """
 
 from __future__ import annotations
@@ -19,6 +31,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import sys
 import time
 
 # Failures are data in the study (result codes); an in-jit runtime check that fired would raise
@@ -146,35 +159,41 @@ def parse_args(argv=None):
         "--cpu-devices", type=_positive_int, default=os.cpu_count() or 1, help="XLA host devices on CPU"
     )
     p.add_argument("--list", action="store_true", help="list the method names and exit")
+    p.add_argument(
+        "--fresh", action="store_true", help="compute every point again (default: resume from OUT/chunks)"
+    )
+    here = os.path.dirname(os.path.abspath(__file__))
+    if here not in sys.path:
+        sys.path.insert(0, here)  # for _launch.py: the process options, ldap_jax.launch's
+    import _launch
+
+    options = _launch.launch_options()
+    options.add_arguments(p)
     args = p.parse_args(argv)
-    if not args.list:
-        # the output folder is checked (and created) before the study, not after it
-        if os.path.exists(args.out) and not os.path.isdir(args.out):
-            p.error(f"argument --out: {args.out!r} exists and is not a directory")
-        try:
-            os.makedirs(args.out, exist_ok=True)
-        except OSError as err:
-            p.error(f"argument --out: cannot create {args.out!r}: {err}")
+    options.check_arguments(args, p.error)
     args.error = p.error
+    if not args.list and args.process_id in (0, None):
+        check_out(args)  # by the process that writes (unknown yet under --cluster: checked later)
     return args
 
 
-def main(argv=None) -> int:
-    args = parse_args(argv)
-    if args.list:
-        print("\n".join(METHOD_NAMES))
-        return 0
-    import ldap_jax as lj
+def check_out(args) -> None:
+    """Check (and create) the output folder before the study, not after it."""
+    p_error = args.error
+    if os.path.exists(args.out) and not os.path.isdir(args.out):
+        p_error(f"argument --out: {args.out!r} exists and is not a directory")
+    try:
+        os.makedirs(args.out, exist_ok=True)
+    except OSError as err:
+        p_error(f"argument --out: cannot create {args.out!r}: {err}")
 
-    if args.cpu_devices > 1:
-        lj.use_cpu_cores(args.cpu_devices)  # before JAX starts
-    import jax
 
-    jax.config.update("jax_enable_x64", True)
-    from tqdm import tqdm
+#: The flags that choose what is computed: every process of a run must be given the same.
+STUDY_FLAGS = ("quick", "methods", "resolutions", "runs", "duration", "model", "seed", "repeats", "fresh")
 
-    from ldap_jax import study as sweeps
 
+def study_config(args, sweeps):
+    """The study's settings from the flags (``--quick`` and the defaults, then each flag)."""
     if args.quick:
         defaults = dict(
             models=("snakeboard",),
@@ -201,7 +220,7 @@ def main(argv=None) -> int:
         if value is not None:
             defaults[key] = value
     try:
-        config = sweeps.StudyConfig(
+        return sweeps.StudyConfig(
             durations=(10.0, 600.0) if args.duration is None else args.duration,
             seed=args.seed,
             reference_step=5e-3 if args.reference_step is None else args.reference_step,
@@ -210,16 +229,9 @@ def main(argv=None) -> int:
     except (TypeError, ValueError) as err:
         args.error(f"the settings are inconsistent: {err}")
 
-    print(
-        f"devices: {len(jax.devices())} x {jax.devices()[0].platform}; models {config.models}; "
-        f"durations {config.durations}; {len(config.methods)} methods; N {config.resolutions}; "
-        f"{config.runs} maneuvers"
-    )
-    start = time.perf_counter()
-    bar = lambda tasks: tqdm(tasks, desc="study", unit="point")  # noqa: E731
-    rows = sweeps.run_study(config, progress=bar, log=tqdm.write)
-    elapsed = time.perf_counter() - start
 
+def report(rows, args, sweeps, elapsed: float) -> None:
+    """Write the CSV files and figures under ``--out`` and print the tables."""
     csv_path = os.path.join(args.out, "sweep.csv")
     sweeps.write_csv(rows, csv_path)
     ratios = sweeps.runtime_ratios(rows)
@@ -236,6 +248,52 @@ def main(argv=None) -> int:
                 f"  {r['model']:<10} {r['duration']:>6g} s  {r['ratio']:<8} "
                 f"{r['equal_n']:8.3g} | {r['equal_accuracy']:8.3g}"
             )
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    if args.list:
+        print("\n".join(METHOD_NAMES))
+        return 0
+    import ldap_jax as lj
+
+    if args.cpu_devices > 1:
+        lj.use_cpu_cores(args.cpu_devices)  # before JAX starts
+    import jax
+
+    from ldap_jax import launch
+
+    jax.config.update("jax_enable_x64", True)
+    # JAX's preemption service would take SIGTERM over (noting a preemption, running on): a
+    # process of a run must stop when the launcher or a job scheduler stops it
+    jax.config.update("jax_enable_preemption_service", False)
+    # joins the other processes, if any (before JAX computes anything), checking that they were
+    # given the same study flags
+    settings = {f"--{k.replace('_', '-')}": getattr(args, k) for k in STUDY_FLAGS + ("reference_step",)}
+    lead = launch.start(args, args.error, settings) == 0
+    from tqdm import tqdm
+
+    from ldap_jax import study as sweeps
+
+    if lead and args.process_id is None:
+        check_out(args)  # --cluster: this process is the one that writes
+    config = study_config(args, sweeps)
+    if lead:
+        print(
+            f"devices: {len(jax.devices())} x {jax.devices()[0].platform} in {jax.process_count()} "
+            f"process(es); models {config.models}; durations {config.durations}; "
+            f"{len(config.methods)} methods; N {config.resolutions}; {config.runs} maneuvers"
+        )
+    start = time.perf_counter()
+    rows = sweeps.run_study(
+        config,
+        progress=(lambda tasks: tqdm(tasks, desc="study", unit="point")) if lead else None,
+        log=tqdm.write if lead else None,
+        chunks=os.path.join(args.out, "chunks"),
+        resume=not args.fresh,
+    )
+    if lead:  # the other processes write nothing
+        report(rows, args, sweeps, time.perf_counter() - start)
     return 0
 
 

@@ -139,6 +139,21 @@ SHARDED = textwrap.dedent(
         np.testing.assert_array_equal(c4, c1)
     (sharded, n) = study.shard_batch(man, study.device_mesh())
     assert n == 6 and len(sharded[0].sharding.device_set) == 4 and sharded[0].shape[0] == 8
+    # the same batch built by each device from its member indices (lj.global_batch): padded with
+    # the last member, the maneuvers of sample_maneuvers
+    q0g, qdot0g, ctlg = study.global_maneuvers(system, 6, seed=3)
+    assert q0g.shape[0] == 8 and len(q0g.sharding.device_set) == 4
+    np.testing.assert_allclose(np.asarray(q0g), np.asarray(sharded[0]), rtol=1e-14, atol=1e-15)
+    np.testing.assert_allclose(np.asarray(ctlg.phase), np.asarray(sharded[2].phase), rtol=1e-14, atol=1e-15)
+    # a point's numbers reduced over the devices: the padding (members 6, 7) counts for nothing
+    q, c = study.rollout_nodes(system, study.make_integrator("dla"), (q0g, qdot0g, ctlg), 3.0, 60,
+                               n_out=10, mesh=study.device_mesh())  # the car's DLA program above
+    q_ref = q.at[6:].add(1e3)  # the padding "blows up" and fails
+    c = c.at[7].set(3)
+    stats = study.point_statistics(q, c, q_ref, c * 0, 6, 10.0)
+    assert int(stats["failures"]) == 0 and float(stats["final_error_max"]) == 0.0
+    stats = study.point_statistics(q, c, q_ref, c * 0, 8, 10.0)
+    assert int(stats["failures"]) == 2 and int(stats["blowup"]) == 1
     # batch_rollout splits the batch with lj.shard_vmap: 6 members padded to 8, two per device
     import jax.numpy as jnp
     import ldap_jax as lj

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -15,7 +17,15 @@ from .._simulate import simulate
 from ..integrators import RK4, AbstractIntegrator
 from ..systems import AbstractSystem
 
-__all__ = ["device_mesh", "shard_batch", "batch_rollout", "reference_batch"]
+__all__ = [
+    "device_mesh",
+    "shard_batch",
+    "rollout_nodes",
+    "timed",
+    "batch_rollout",
+    "reference_batch",
+    "reference_steps",
+]
 
 
 def shard_batch(tree, mesh: Mesh):
@@ -64,6 +74,56 @@ def _nodes(system, integrator, t_final, n_steps: int, n_out: int, q0, qdot0, con
     return traj.q, traj.result._value
 
 
+def rollout_nodes(
+    system: AbstractSystem,
+    integrator: AbstractIntegrator,
+    maneuvers,
+    t_final: float,
+    n_steps: int,
+    *,
+    n_out: int,
+    mesh: Mesh,
+):
+    """:func:`ldap_jax.simulate` over a batch of maneuvers already placed on the devices of
+    ``mesh`` (global arrays, e.g. from :func:`shard_batch` or
+    :func:`~ldap_jax.study.global_maneuvers`), keeping ``n_out + 1`` evenly spaced positions.
+
+    Returns:
+        ``(q_out (B, n_out + 1, d), result codes (B,))``, global arrays split as the batch is.
+
+    Raises:
+        ValueError: ``n_steps`` not a multiple of ``n_out``.
+    """
+    if int(n_steps) % n_out:
+        raise ValueError(f"'n_steps' ({n_steps}) must be a multiple of n_out ({n_out})")
+    q0, qdot0, ctl = maneuvers
+    run = shard_vmap(_nodes, in_axes=(None,) * 5 + (0, 0, 0), mesh=mesh)
+    t_final = jnp.asarray(t_final, q0.dtype)
+    return run(system, integrator, t_final, int(n_steps), int(n_out), q0, qdot0, ctl)
+
+
+def timed(call: Callable[[], Any], repeats: int) -> tuple[Any, float]:
+    """The median wall time of ``repeats`` calls of ``call`` after one untimed (compiling) call,
+    each waiting for its results. With several processes, a call's time is the longest any
+    process took (a collective of one number per call and process).
+
+    Returns:
+        ``(the last call's results, seconds)``.
+    """
+    out = jax.block_until_ready(call())
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        out = jax.block_until_ready(call())
+        times.append(time.perf_counter() - start)
+    times = np.asarray(times)
+    if jax.process_count() > 1:
+        from jax.experimental import multihost_utils
+
+        times = np.max(np.asarray(multihost_utils.process_allgather(times)), axis=0)
+    return out, float(np.median(times))
+
+
 def batch_rollout(
     system: AbstractSystem,
     integrator: AbstractIntegrator,
@@ -83,29 +143,21 @@ def batch_rollout(
         repeats: if positive, a first call (compiling) is not timed, then ``repeats`` calls are.
 
     Returns:
-        ``(q_out (B, n_out + 1, d), result codes (B,), seconds)`` with ``seconds`` the median
-        wall time of the timed calls for the whole batch (``nan`` when ``repeats == 0``).
+        ``(q_out (B, n_out + 1, d), result codes (B,), seconds)`` on the host (with several
+        processes, every process gets the whole batch), with ``seconds`` the median wall time
+        of the timed calls for the whole batch (``nan`` when ``repeats == 0``).
 
     Raises:
         ValueError: ``n_steps`` not a multiple of ``n_out``.
     """
-    if int(n_steps) % n_out:
-        raise ValueError(f"'n_steps' ({n_steps}) must be a multiple of n_out ({n_out})")
     mesh = device_mesh() if mesh is None else mesh
     # placed on the devices before the timed calls, padded to a multiple of them
-    (q0, qdot0, ctl), n = shard_batch(maneuvers, mesh)
-    run = shard_vmap(_nodes, in_axes=(None,) * 5 + (0, 0, 0), mesh=mesh)
-    t_final = jnp.asarray(t_final, q0.dtype)
-    args = (system, integrator, t_final, int(n_steps), int(n_out), q0, qdot0, ctl)
-    if repeats:
-        jax.block_until_ready(run(*args))
-    times = []
-    q_out = code = None
-    for _ in range(max(repeats, 1)):
-        start = time.perf_counter()
-        q_out, code = jax.block_until_ready(run(*args))
-        times.append(time.perf_counter() - start)
-    seconds = float(np.median(times)) if repeats else float("nan")
+    placed, n = shard_batch(maneuvers, mesh)
+
+    def call():
+        return rollout_nodes(system, integrator, placed, t_final, n_steps, n_out=n_out, mesh=mesh)
+
+    (q_out, code), seconds = timed(call, repeats) if repeats else (call(), float("nan"))
     return _gather(q_out)[:n], _gather(code)[:n], seconds
 
 
@@ -128,6 +180,12 @@ def reference_batch(
     Returns:
         ``(q_ref (B, n_out + 1, d), result codes (B,))``.
     """
-    n_ref = n_out * max(1, math.ceil(t_final / (step * n_out)))
+    n_ref = reference_steps(t_final, n_out, step)
     q, code, _ = batch_rollout(system, RK4(), maneuvers, t_final, n_ref, n_out=n_out, mesh=mesh)
     return q, code
+
+
+def reference_steps(t_final: float, n_out: int, step: float) -> int:
+    """The reference's number of RK4 steps: the fewest multiple of ``n_out`` with a step of at
+    most ``step``."""
+    return n_out * max(1, math.ceil(t_final / (step * n_out)))

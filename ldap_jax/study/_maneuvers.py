@@ -5,12 +5,18 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh
 from jaxtyping import Array
 
 from .._controls import AbstractControls, Sinusoids
+from .._sharding import global_batch
 from ..systems import AbstractSystem, Snakeboard
 
-__all__ = ["sample_maneuvers"]
+__all__ = ["sample_maneuvers", "global_maneuvers", "SAMPLE_BLOCK"]
+
+#: Members sampled by one call of :func:`global_maneuvers`'s compiled sampling program.
+SAMPLE_BLOCK = 64
 
 
 def _zero_steer_rate(system: Snakeboard, q0: Array, qdot0: Array, ctl: Sinusoids):
@@ -48,6 +54,36 @@ def sample_maneuvers(
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise ValueError(f"'n' must be a positive integer, got {n!r}")
     return _sample(system, jax.random.split(jax.random.PRNGKey(seed), n), zero_steer_rate)
+
+
+def global_maneuvers(
+    system: AbstractSystem, n: int, seed: int, *, zero_steer_rate: bool = True, mesh: Mesh | None = None
+) -> tuple[Array, Array, AbstractControls]:
+    """The maneuvers of :func:`sample_maneuvers` as global arrays split over the devices of
+    ``mesh`` (default: all devices of all processes), each process sampling only the members its
+    devices hold (:func:`ldap_jax.global_batch`: padded to a multiple of the devices with copies
+    of member ``n - 1``). Member ``i`` is the same as ``sample_maneuvers(system, n, seed)``'s,
+    up to the round-off of a batch of another size. Members are sampled in blocks of a fixed size
+    (:data:`SAMPLE_BLOCK`): one compiled program for every batch size and number of devices, and
+    the same numbers whatever the number of processes.
+
+    Raises:
+        ValueError: ``n < 1``.
+    """
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        raise ValueError(f"'n' must be a positive integer, got {n!r}")
+    keys = np.asarray(jax.random.split(jax.random.PRNGKey(seed), n))  # 8 bytes a member
+
+    def make(indices: np.ndarray):
+        parts = []
+        for start in range(0, len(indices), SAMPLE_BLOCK):
+            idx = indices[start : start + SAMPLE_BLOCK]
+            block = np.concatenate([idx, np.full(SAMPLE_BLOCK - len(idx), idx[-1])])
+            man = _sample(system, keys[block], zero_steer_rate)
+            parts.append(jax.tree_util.tree_map(lambda x, k=len(idx): np.asarray(x)[:k], man))
+        return jax.tree_util.tree_map(lambda *xs: np.concatenate(xs), *parts)
+
+    return global_batch(make, n, mesh=mesh)
 
 
 @eqx.filter_jit

@@ -2,16 +2,22 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Iterable, Sequence
+from typing import NamedTuple
 
 import jax
 import numpy as np
 from jax.sharding import Mesh
 
 from .._compilation_cache import trim_compilation_cache
-from ._batch import batch_rollout, device_mesh, reference_batch
-from ._config import MODELS, StudyConfig, make_integrator
-from ._maneuvers import sample_maneuvers
+from ..integrators import RK4
+from ..systems import AbstractSystem
+from ._batch import device_mesh, reference_steps, rollout_nodes, timed
+from ._chunks import ChunkStore
+from ._config import CSV_COLUMNS, MODELS, StudyConfig, make_integrator
+from ._maneuvers import global_maneuvers
+from ._summary import host_scalars, point_statistics, reference_statistics
 
 __all__ = ["run_study", "position_errors", "runtime_ratios"]
 
@@ -20,13 +26,6 @@ def position_errors(q: np.ndarray, q_ref: np.ndarray) -> tuple[np.ndarray, np.nd
     """Euclidean ``(x, y)`` errors: ``(final (B,), max over the output nodes (B,))``."""
     err = np.linalg.norm(np.asarray(q)[..., :2] - np.asarray(q_ref)[..., :2], axis=-1)
     return err[:, -1], np.max(err, axis=-1)
-
-
-def _stats(x: np.ndarray) -> tuple[float, float, float]:
-    x = x[np.isfinite(x)]
-    if x.size == 0:
-        return (float("nan"),) * 3
-    return float(np.mean(x)), float(np.median(x)), float(np.max(x))
 
 
 def _tasks(config: StudyConfig) -> list[tuple[str, float, str, int]]:
@@ -39,100 +38,127 @@ def _tasks(config: StudyConfig) -> list[tuple[str, float, str, int]]:
     ]
 
 
+class _Reference(NamedTuple):
+    """A model and duration's maneuvers and reference, as global arrays on the devices."""
+
+    system: AbstractSystem
+    sample: Callable[[int], tuple]  # the first n maneuvers, as global arrays
+    maneuvers: tuple
+    q: jax.Array
+    code: jax.Array
+    error: float
+
+
+def _reference(config: StudyConfig, model: str, dur: float, mesh: Mesh, log) -> _Reference:
+    """The maneuvers of ``model`` (each process samples its devices' members), the RK4 reference
+    on them, and the reference's error estimated against half its step on a few of them."""
+    system = MODELS[model]()
+    seed = config.seed + 1000 * list(MODELS).index(model)
+    n_out = config.output_nodes
+
+    def maneuvers(n: int):
+        return global_maneuvers(system, n, seed, zero_steer_rate=config.zero_steer_rate, mesh=mesh)
+
+    def reference(man, step: float):
+        n_ref = reference_steps(dur, n_out, step)
+        return rollout_nodes(system, RK4(), man, dur, n_ref, n_out=n_out, mesh=mesh)
+
+    ref_step = min(config.reference_step, dur / max(config.resolutions) / 4)
+    man = maneuvers(config.runs)
+    q_ref, ref_code = reference(man, ref_step)
+    m = min(config.reference_check, config.runs)
+    q_half, _ = reference(maneuvers(m), ref_step / 2)
+    stats = host_scalars(reference_statistics(q_ref, ref_code, q_half, config.runs, m))
+    log(
+        f"{model} {dur:g} s: reference (RK4, h <= {ref_step:.3g}) error estimate {stats['error']:.2e} "
+        f"(vs h/2, {m} maneuvers); reference failures {stats['failures']}"
+    )
+    return _Reference(system, maneuvers, man, q_ref, ref_code, stats["error"])
+
+
+def _point(config: StudyConfig, ref: _Reference, task, mesh: Mesh) -> dict:
+    """The row of one point: the method's rollouts of every maneuver, reduced on the devices,
+    and its runtime per trajectory on the first ``timing_runs`` maneuvers."""
+    model, dur, method, n = task
+    integrator = make_integrator(method)
+    n_out = config.output_nodes
+
+    def run(man):
+        return lambda: rollout_nodes(ref.system, integrator, man, dur, n, n_out=n_out, mesh=mesh)
+
+    n_time = min(config.timing_runs, config.runs)
+    if n_time < config.runs:
+        q, code = run(ref.maneuvers)()
+        _, seconds = timed(run(ref.sample(n_time)), config.repeats)
+    else:
+        (q, code), seconds = timed(run(ref.maneuvers), config.repeats)
+    stats = host_scalars(point_statistics(q, code, ref.q, ref.code, config.runs, config.blowup_factor))
+    values = dict(
+        stats,
+        model=model,
+        duration=dur,
+        method=method,
+        n_steps=n,
+        h=dur / n,
+        runs=config.runs,
+        failure_rate=stats["failures"] / config.runs,
+        runtime_us=1e6 * seconds / n_time,
+        reference_error=ref.error,
+    )
+    return {c: values[c] for c in CSV_COLUMNS}
+
+
 def run_study(
     config: StudyConfig,
     *,
     mesh: Mesh | None = None,
     progress: Callable[[Iterable], Iterable] | None = None,
     log: Callable[[str], None] | None = None,
+    chunks: str | os.PathLike | None = None,
+    resume: bool = True,
 ) -> list[dict]:
     """Run the study of ``config``: one row per model x duration x method x N (see
     :data:`CSV_COLUMNS`).
 
+    The maneuvers, rollouts and references are global arrays split over the devices of
+    ``mesh``; each process samples and runs only its devices' members, and each point comes
+    back as its row's numbers (:func:`~ldap_jax.study.point_statistics`). With several
+    processes (``jax.distributed.initialize``), every process calls this with the same
+    ``config`` and gets the same rows.
+
     Args:
-        mesh: devices to shard the batch over (default: all).
+        mesh: devices to shard the batch over (default: all devices of all processes).
         progress: wraps the task list (e.g. ``tqdm.tqdm``) for a progress bar.
-        log: receives one-line messages (reference error, timings).
+        log: receives one-line messages (reference error, timings, resumed points).
+        chunks: a folder in which process 0 keeps each point's row as soon as it is done
+            (:class:`~ldap_jax.study.ChunkStore`).
+        resume: take the rows already in ``chunks`` instead of computing their points again
+            (and a model and duration's reference only if one of its points is left).
 
     Returns:
         The rows, as dicts keyed by :data:`CSV_COLUMNS`.
     """
     mesh = device_mesh() if mesh is None else mesh
     log = log or (lambda s: None)
-    n_out = config.output_nodes
     tasks = _tasks(config)
+    store = None if chunks is None else ChunkStore(chunks, config)
+    rows = store.load(tasks) if store is not None and resume else {}
+    if rows:
+        log(f"resumed {len(rows)} of {len(tasks)} points from {store.folder}")
     iterator = progress(tasks) if progress is not None else tasks
-    cache: dict = {}
-    rows = []
-    for model, dur, method, n in iterator:
-        key = (model, dur)
-        if key not in cache:
-            system = MODELS[model]()
-            man = sample_maneuvers(
-                system,
-                config.runs,
-                config.seed + 1000 * list(MODELS).index(model),
-                zero_steer_rate=config.zero_steer_rate,
-            )
-            ref_step = min(config.reference_step, dur / max(config.resolutions) / 4)
-            q_ref, ref_code = reference_batch(system, man, dur, n_out=n_out, step=ref_step, mesh=mesh)
-            m = min(config.reference_check, config.runs)
-            sub = jax.tree_util.tree_map(lambda x: x[:m], man)
-            q_half, _ = reference_batch(system, sub, dur, n_out=n_out, step=ref_step / 2, mesh=mesh)
-            ref_err = float(np.nanmax(position_errors(q_ref[:m], q_half)[1]))
-            log(
-                f"{model} {dur:g} s: reference (RK4, h <= {ref_step:.3g}) error estimate {ref_err:.2e} "
-                f"(vs h/2, {m} maneuvers); reference failures {int(np.sum(ref_code != 0))}"
-            )
-            cache = {key: (system, man, q_ref, ref_code, ref_err)}
-        system, man, q_ref, ref_code, ref_err = cache[key]
-        integrator = make_integrator(method)
+    ref = None
+    for i, task in enumerate(iterator):
+        if i in rows:
+            continue
+        if ref is None or ref[0] != task[:2]:
+            ref = None  # frees the previous reference before the next is computed
+            trim_compilation_cache()
+            ref = (task[:2], _reference(config, task[0], task[1], mesh, log))
         trim_compilation_cache()  # a full study compiles enough programs to exhaust vm.max_map_count
-        n_time = min(config.timing_runs, config.runs)
-        if n_time < config.runs:
-            q, code, _ = batch_rollout(system, integrator, man, dur, n, n_out=n_out, mesh=mesh)
-            sub = jax.tree_util.tree_map(lambda x: x[:n_time], man)
-            _, _, seconds = batch_rollout(
-                system, integrator, sub, dur, n, n_out=n_out, mesh=mesh, repeats=config.repeats
-            )
-        else:
-            q, code, seconds = batch_rollout(
-                system, integrator, man, dur, n, n_out=n_out, mesh=mesh, repeats=config.repeats
-            )
-        final, worst = position_errors(q, q_ref)
-        # blow-up: finite, but the position error exceeds 10 x (1 + the reference's extent)
-        extent = np.max(np.linalg.norm(q_ref[..., :2] - q_ref[:, :1, :2], axis=-1), axis=-1)
-        blowup = (code == 0) & ~(worst <= config.blowup_factor * (1.0 + extent))
-        ok = (code == 0) & ~blowup & (ref_code == 0)
-        final, worst = np.where(ok, final, np.nan), np.where(ok, worst, np.nan)
-        fm, fmed, fmax = _stats(final)
-        wm, wmed, wmax = _stats(worst)
-        failures = int(np.sum(code != 0) + np.sum(blowup))
-        rows.append(
-            dict(
-                model=model,
-                duration=dur,
-                method=method,
-                n_steps=n,
-                h=dur / n,
-                runs=config.runs,
-                failures=failures,
-                failure_rate=failures / config.runs,
-                nonfinite=int(np.sum(code == 1)),
-                singular=int(np.sum(code == 2)),
-                not_converged=int(np.sum(code == 3)),
-                blowup=int(np.sum(blowup)),
-                final_error_mean=fm,
-                final_error_median=fmed,
-                final_error_max=fmax,
-                max_error_mean=wm,
-                max_error_median=wmed,
-                max_error_max=wmax,
-                runtime_us=1e6 * seconds / n_time,
-                reference_error=ref_err,
-            )
-        )
-    return rows
+        rows[i] = _point(config, ref[1], task, mesh)
+        if store is not None:
+            store.save(task, rows[i])
+    return [rows[i] for i in range(len(tasks))]
 
 
 def runtime_ratios(
