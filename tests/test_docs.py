@@ -53,6 +53,15 @@ assert float(jnp.linalg.norm(traj.q[-1, :2] - ref.q[-1, :2])) < 1e-5  # order 4 
 assert bool(jnp.all(jnp.isfinite(jax.grad(distance)(ctl.amplitude))))
 """,
     ),
+    "control": (
+        lambda b: "lc.drive_gait()" in b,
+        """
+import numpy as np
+assert bool(sol.converged) and float(sol.max_violation) < 1e-9
+assert -float(sol.cost) > 0.262  # the drive gait's distance per cycle (IPOPT's best: 0.2620924)
+assert np.all(cycles["return_error"] < 1e-5) and cycles["stability"] == "neutrally stable"
+""",
+    ),
 }
 
 # The checks run after a guide page's examples, in their namespace (pages without an entry only
@@ -86,6 +95,14 @@ assert len(again) == len(rows) and all(os.path.exists(p) for p in paths)
 line = next(l for l in fig.axes[0].get_lines() if "rdp4" in l.get_label())
 want = sorted(r["runtime_us"] * 1e-6 for r in rows if r["method"] == "rdp4")
 assert len(want) == 2 and all(abs(a / b - 1) < 1e-12 for a, b in zip(sorted(line.get_xdata()), want))
+""",
+    "control.md": """
+assert bool(sol.converged) and rp["final_position_error"] < 1e-6
+assert bool(around.converged) and float(around.cost) > float(sol.cost)
+closest = np.min(np.linalg.norm(q[:, :2] - np.asarray(center), axis=1))
+assert closest >= 0.05 - 1e-8
+assert bool(gait.converged) and np.all(cycles["return_error"] < 1e-5)
+assert tracker.n_channels == 2 and np.isfinite(float(jax.grad(optimal_effort)(1.0)))
 """,
     "plotting.md": """
 assert 1.8 < plotting.fitted_order(steps, errors["RDP"], floor=1e-11) < 2.2
