@@ -15,9 +15,9 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from ._fields import converter_field
 from ._numerics import materialise, sincos
 from ._typing import ArrayLike
-from ._validation import converter_field
 
 __all__ = ["AbstractControls", "Sinusoids", "Sampled", "Constant"]
 

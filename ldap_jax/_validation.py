@@ -10,9 +10,7 @@ reported per trajectory as a result code (:data:`~ldap_jax.RESULTS` ``invalid_in
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import numbers
-import sys
 from collections.abc import Sequence
 from typing import Any
 
@@ -23,6 +21,9 @@ import numpy as np
 from jaxtyping import Array
 
 from ._compilation_cache import in_trace
+from ._controls import Constant
+from ._fields import converter_field as converter_field
+from ._policy import AbstractPolicy
 from ._results import RESULTS
 from ._typing import ArrayLike
 
@@ -111,28 +112,6 @@ def check_positive_number(name: str, x: Any, *, allow_inf: bool = False) -> floa
     if not (x > 0 and (allow_inf or np.isfinite(x))):
         raise ValueError(f"'{name}' must be a positive{'' if allow_inf else ' finite'} number, got {x!r}")
     return x
-
-
-def converter_field(max_depth: int = 8) -> tuple[str | None, str | None]:
-    """``(class name, field name)`` of the ``eqx.field(converter=...)`` being run, or ``None``s.
-
-    Equinox calls a field's converter with the value alone; to name the argument in an error the
-    converter reads the field from the caller's frame (equinox's ``Module.__call__`` holds it as
-    the local ``f``, a ``dataclasses.Field``). Best effort: ``(None, None)`` if not found.
-    """
-    try:
-        frame = sys._getframe(2)
-    except ValueError:  # pragma: no cover
-        return None, None
-    for _ in range(max_depth):
-        if frame is None:
-            break
-        field = frame.f_locals.get("f")
-        if isinstance(field, dataclasses.Field):
-            cls = frame.f_locals.get("cls")
-            return (getattr(cls, "__name__", None), field.name)
-        frame = frame.f_back
-    return None, None
 
 
 def nonfinite_leaves(tree: Any) -> list[str]:
@@ -225,7 +204,6 @@ def known_initial_violation(system, q0, qdot0, controls, t0) -> tuple[bool, floa
     of them single operations, measured)."""
     with jax.ensure_compile_time_eval() if in_trace() else contextlib.nullcontext():
         if controls is None:  # made here: inside a trace, a constant made outside is traced
-            from ._controls import Constant
 
             controls = Constant(jnp.zeros(system.n_controls))
         finite, viol, tol = initial_violation(system, q0, qdot0, controls, t0)
@@ -239,7 +217,6 @@ def initial_violation(system, q0, qdot0, controls, t0) -> tuple[Array, Array, Ar
 
     One compiled program per signature: run op by op on known values, this check made a first call
     of ``simulate`` compile 41 single-operation programs besides the rollout (now 13)."""
-    from ._policy import AbstractPolicy
 
     t = jnp.asarray(t0, q0.dtype)
     c0 = controls(t, q0, qdot0) if isinstance(controls, AbstractPolicy) else controls(t)

@@ -40,7 +40,7 @@ def physical_parameter(x: Any) -> Array:
         TypeError: for anything that is not a real number or an array of real numbers (e.g. a
             string, ``None``, a complex number); the message names the parameter.
     """
-    from .._validation import converter_field
+    from .._fields import converter_field
 
     value = x
 
