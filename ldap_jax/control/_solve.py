@@ -15,6 +15,7 @@ from jaxtyping import Array, Bool, Float, Int
 from .._compilation_cache import jit
 from .._discrete import discretize
 from .._numerics import plain
+from .._simulate import simulate
 from .._validation import check_positive_int, check_positive_number, is_concrete
 from ..integrators import RDP, AbstractIntegrator
 from ._ipm import SOLVER_RESULTS, IPMOptions, IPMState, ipm_solve
@@ -45,6 +46,11 @@ class Solution(eqx.Module):
         resets: how often the method restarted after a line search failed far from feasibility.
         states: the flat states of the discrete dynamics at the nodes, (N + 1, n).
         multipliers: the dynamics multipliers (N + 1, n_stage) and the terminal ones (p,).
+        model_error: an estimate of how far the model itself is from the physics at the
+            solution: ``(position [m], heading [rad])`` of the difference at ``t_N`` between the
+            optimised controls rolled out with the task's integrator at its step ``h`` and at
+            ``h/2`` (for an order-``p`` method this is the model's own error times ``1 - 2^-p``).
+            ``lc.replay`` measures it against ``lj.reference``.
         starts: how many initial guesses were run (1, or the batch of ``params0``), and
             ``starts_converged`` how many of them converged.
     """
@@ -59,6 +65,7 @@ class Solution(eqx.Module):
     resets: Int[Array, ""]
     states: Float[Array, "K n"]
     multipliers: tuple[Array, Array]
+    model_error: Float[Array, " 2"]
     starts: int = eqx.field(static=True, default=1)
     starts_converged: Int[Array, ""] | None = None
 
@@ -297,4 +304,31 @@ def _finish(task: Task, st: IPMState, violation: Array) -> Solution:
             resets=st.resets,
             states=chi[:, : lay.nx],
             multipliers=(st.y, st.nu),
+            model_error=_model_error(task, jax.lax.stop_gradient(from_variables(lay, p, v))),
         )
+
+
+def _model_error(task: Task, params) -> Array:
+    """``(position, heading)`` difference at ``t_N`` between the task's model at ``h`` and ``h/2``."""
+    q0, qdot0 = task.initial_state(params)
+    controls = task.controls(params)
+    d = task.system.n_config
+
+    def final(n_steps):
+        traj = simulate(
+            task.system,
+            q0,
+            qdot0,
+            controls,
+            t_final=task.t_final,
+            n_steps=n_steps,
+            integrator=task.integrator,
+            save="final",
+            check_constraints=False,
+            divergence=None,
+        )
+        return traj.q.reshape(-1, d)[-1]
+
+    a, b = final(task.n_steps), final(2 * task.n_steps)
+    heading = jnp.abs(jnp.remainder(a[2] - b[2] + jnp.pi, 2 * jnp.pi) - jnp.pi)
+    return jnp.stack([jnp.linalg.norm(a[:2] - b[:2]), heading])
