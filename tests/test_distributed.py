@@ -23,7 +23,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SWEEP = os.path.join(ROOT, "scripts", "sweep.py")
 # a part of test_study's car study: the 1-process run, in the worker, reuses its compiled programs
 # (the padding of a batch over devices is checked in test_study's 4-device process)
-SMALL = "--model car --methods rdp --resolutions 20,40 --runs 4 --duration 2s --repeats 1".split()
+SMALL = "--model car --methods rdp --resolutions 20 --runs 4 --duration 2s --repeats 1".split()
 COUNTS = ("n_steps", "runs", "failures", "nonfinite", "singular", "not_converged", "blowup")
 
 
