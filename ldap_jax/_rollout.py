@@ -263,8 +263,9 @@ def rollout(
     n_s = system.n_shape
     impulse0 = jnp.zeros((4, n_s), dtype)
     static_forcing = None  # the forcing scale, when the controls know their impulse
-    if check_divergence:
-        mobility = jnp.abs(jax.lax.stop_gradient(_mobility(system, q0)))
+    mobility = _mobility(system, q0) if check_divergence else None
+    mobility = None if mobility is None else jnp.abs(jax.lax.stop_gradient(mobility))
+    if mobility is not None:
         spread = None if policy else controls.impulse_spread(t0, t0 + h * n_steps)
         if spread is not None:
             spread = jnp.abs(system.inputs(jax.lax.stop_gradient(spread).astype(dtype))[0])
@@ -306,13 +307,17 @@ def rollout(
                     # the scale of the work: the absolute work so far, but no more than the
                     # energy the forces' impulse can give the system at rest at q0 (the absolute
                     # work of a diverging run grows with its divergence: the test never fired)
-                    if static_forcing is None:
-                        impulse = _impulse(carry.impulse, system.inputs(c_node)[0].astype(dtype), h)
-                        spread = impulse[2] - impulse[1]
-                        forcing = 0.5 * spread @ mobility @ spread
+                    if mobility is None:  # a description without a full view: the absolute work
+                        work_scale = abs_work
                     else:
-                        forcing = static_forcing
-                    bound = divergence * (energy_scale0 + jnp.fmin(abs_work, forcing)) + jnp.finfo(dtype).tiny
+                        if static_forcing is None:
+                            impulse = _impulse(carry.impulse, system.inputs(c_node)[0].astype(dtype), h)
+                            spread = impulse[2] - impulse[1]
+                            forcing = 0.5 * spread @ mobility @ spread
+                        else:
+                            forcing = static_forcing
+                        work_scale = jnp.fmin(abs_work, forcing)
+                    bound = divergence * (energy_scale0 + work_scale) + jnp.finfo(dtype).tiny
                     step_result = RESULTS.where(
                         (step_result == RESULTS.successful) & (balance > bound), RESULTS.diverged, step_result
                     )
@@ -390,16 +395,20 @@ def rollout(
     return _assemble(carry, outs, obs0, plan, t0, h, n_steps, sink)
 
 
-def _mobility(system: AbstractSystem, q0: Array) -> Array:
+def _mobility(system: AbstractSystem, q0: Array) -> Array | None:
     """``A`` with ``1/2 P^T A P`` the kinetic energy an impulse ``P`` of the shape forces gives the
-    system at rest at ``q0`` (the constrained inverse mass matrix on the shape coordinates)."""
+    system at rest at ``q0`` (the constrained inverse mass matrix on the shape coordinates), or
+    ``None`` for a description without a full view (the test then scales by the absolute work)."""
     n_s = system.n_shape
     zero = jnp.zeros(n_s, q0.dtype)
 
     def response(p):
         return system.full_acceleration(q0, jnp.zeros_like(q0), p, zero)[0][3:]
 
-    return jax.jacfwd(response)(zero)
+    try:
+        return jax.jacfwd(response)(zero)
+    except ValueError:  # a System description without a full view (no constraints given)
+        return None
 
 
 def _impulse(prev: Array, f: Array, h: Array) -> Array:
