@@ -175,7 +175,7 @@ def turn_gait(
 
     The problem has many local optima (random starts end anywhere between 0.01 and 0.1 rad per
     cycle), so the default guess is a batch of ``starts`` random periodic guesses (default 16),
-    which ``lc.solve`` runs under ``vmap``, returning the best converged one."""
+    which ``lc.solve`` runs in one program, returning the best converged one."""
     sb = system if system is not None else Snakeboard()
     return make_gait(
         sb,
