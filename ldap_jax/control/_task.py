@@ -56,8 +56,8 @@ class Guess(eqx.Module):
         amplitude: size of the guess's controls, as a fraction of their scale.
         gait: a sinusoid gait whose samples initialise per-step controls (or None).
         starts: number of starts of the default guess; above 1 :meth:`Task.init` returns a batch
-            (a leading axis) of random guesses, which :func:`~ldap_jax.control.solve` runs under
-            ``vmap`` and from which it returns the best converged solution.
+            (a leading axis) of random guesses, which :func:`~ldap_jax.control.solve` runs one
+            after another in one program, returning the best converged solution.
         seed: the seed of those random guesses.
         controls: explicit scaled node controls ``(N + 1, n_channels)`` for the deterministic
             guess (``key=None``, one start), or None.
