@@ -106,7 +106,7 @@ class _Parts:
     def slacks(self, k, x, c) -> Array:
         if not self.lay.n_path:
             return jnp.zeros((0,), x.dtype)
-        t = k * self.h
+        t = jnp.asarray(k, x.dtype) * self.h
         obs = self.node(x, c)
         return jnp.concatenate([con.residual(self.system, t, obs, c) for con in self.task.path_constraints])
 
