@@ -204,7 +204,6 @@ def known_initial_violation(system, q0, qdot0, controls, t0) -> tuple[bool, floa
     of them single operations, measured)."""
     with jax.ensure_compile_time_eval() if in_trace() else contextlib.nullcontext():
         if controls is None:  # made here: inside a trace, a constant made outside is traced
-
             controls = Constant(jnp.zeros(system.n_controls))
         finite, viol, tol = initial_violation(system, q0, qdot0, controls, t0)
         return bool(finite), float(viol), float(tol)
