@@ -175,7 +175,10 @@ def parse_args(argv=None):
     )
     parser.add_argument("--model", choices=["car", "snakeboard"], required=True, help="the system")
     parser.add_argument(
-        "--task", choices=sorted(ITERATIONS), required=True, help="the task (must belong to --model)"
+        "--task",
+        choices=sorted({t for tasks in MODEL_TASKS.values() for t in tasks}),
+        required=True,
+        help="the task (must belong to --model)",
     )
     parser.add_argument(
         "--quick", action="store_true", help="small settings (penalty form: fewer iterations)"
@@ -455,16 +458,21 @@ def gait_report(args, task, params, info, out: pathlib.Path, cycles: int = 3) ->
     q = np.asarray(rp["q_ref"])
     fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(10, 4))
     ax0.plot(q[:, 0], q[:, 1])
-    ax0.set(
-        xlabel="x [m]", ylabel="y [m]", title=f"{args.task}: {cycles} cycles on the reference", aspect="equal"
-    )
+    ax0.set(xlabel="x [m]", ylabel="y [m]", title=f"{args.task}: {cycles} cycles on the reference")
     names = task.system.shape_names
     keep = [i for i, n in enumerate(names) if n not in task.periodic.cyclic]
     t = np.asarray(rp["t"])
     for i in keep:
         ax1.plot(t, q[:, 3 + i], label=names[i])
     dx, dy, dth = rp["model_displacement"]
-    ax1.set(xlabel="t [s]", title=f"shape; per cycle dx={dx:.4g} m, dy={dy:.3g} m, dtheta={dth:.3g} rad")
+    ax1.set(xlabel="t [s]", ylabel="shape [rad or m]", title="shape over the cycles")
+    ax1.text(
+        0.02,
+        0.02,
+        f"per cycle: dx = {dx:.4g} m, dy = {dy:.2g} m, dtheta = {dth:.2g} rad",
+        transform=ax1.transAxes,
+        fontsize=8,
+    )
     ax1.legend()
     fig.tight_layout()
     fig.savefig(out / f"{stem}.png", dpi=110)
