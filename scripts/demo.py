@@ -105,7 +105,8 @@ def _gait(stem: str) -> Callable[[pathlib.Path], str]:
         dx = r["model_displacement"][0]
         return (
             f"{dx:.6f} m per cycle, {r['iterations']} iterations in {r['wall_s']:.1f} s; on lj.reference "
-            f"the state returns to within {max(r['return_error']):.1e} per cycle; {r['stability']}"
+            f"the state is back to within {max(r['return_error']):.1e} after each of "
+            f"{len(r['return_error'])} cycles; {r['stability']}"
         )
 
     return headline
