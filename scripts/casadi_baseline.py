@@ -303,14 +303,16 @@ def initial_guess(prob: Problem, kind: str | None = None) -> np.ndarray:
     return np.concatenate([states.reshape(-1), controls.reshape(-1)])
 
 
-def replay(prob: Problem, controls: np.ndarray) -> np.ndarray:
+def replay(prob: Problem, controls: np.ndarray, x0: np.ndarray | None = None) -> np.ndarray:
     """The ODE states at the nodes ``(N + 1, n_x)`` under the linearly interpolated ``controls``,
-    from :attr:`Problem.x0`, by ``solve_ivp`` (DOP853, ``rtol = atol = 1e-12``) interval by interval."""
+    from ``x0`` (default :attr:`Problem.x0`), by ``solve_ivp`` (DOP853, ``rtol = atol = 1e-12``)
+    interval by interval. ``prob`` needs ``system``, ``params``, ``h`` and ``n_steps`` (a gait's
+    description will do)."""
     from scipy.integrate import solve_ivp
 
     controls = np.asarray(controls, float)
     h = prob.h
-    out = [np.asarray(prob.x0, float)]
+    out = [np.asarray(prob.x0 if x0 is None else x0, float)]
     for k in range(prob.n_steps):
         t0, c0, c1 = k * h, controls[k], controls[k + 1]
 

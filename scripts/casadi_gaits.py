@@ -57,6 +57,7 @@ import time
 
 import numpy as np
 from casadi_baseline import _CONTROL_NAMES, _STATE_NAMES, CAR, SNAKEBOARD, rhs
+from casadi_baseline import replay as cb_replay
 
 __all__ = ["GAITS", "Gait", "gait", "build_gait", "guesses", "rollout", "replay_gait", "run_gait"]
 
@@ -261,25 +262,9 @@ def build_gait(g: Gait, options: dict | None = None):
 
 
 def replay_gait(g: Gait, x0: np.ndarray, controls: np.ndarray) -> np.ndarray:
-    """The node states ``(N + 1, n_x)`` under the linearly interpolated ``controls`` from ``x0``,
-    by ``solve_ivp`` (DOP853, ``rtol = atol = 1e-12``) interval by interval."""
-    from scipy.integrate import solve_ivp
-
-    controls = np.asarray(controls, float)
-    h = g.h
-    out = [np.asarray(x0, float)]
-    for k in range(g.n_steps):
-        t0, c0, c1 = k * h, controls[k], controls[k + 1]
-
-        def fun(t, x, t0=t0, c0=c0, c1=c1):
-            a = (t - t0) / h
-            return rhs(g.system, g.params, x, (1 - a) * c0 + a * c1)
-
-        sol = solve_ivp(fun, (t0, t0 + h), out[-1], method="DOP853", rtol=1e-12, atol=1e-12)
-        if not sol.success:
-            raise RuntimeError(f"replay failed on interval {k}: {sol.message}")
-        out.append(sol.y[:, -1])
-    return np.stack(out)
+    """The node states ``(N + 1, n_x)`` under the linearly interpolated ``controls`` from ``x0``
+    (:func:`casadi_baseline.replay`: ``solve_ivp``, DOP853, ``rtol = atol = 1e-12``)."""
+    return cb_replay(g, controls, x0)
 
 
 def _violation(opti, sol_or_debug) -> float:
