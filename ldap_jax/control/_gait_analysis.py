@@ -24,7 +24,6 @@ from jaxtyping import Array
 
 from .. import lie
 from .._reference import reference
-from .._simulate import simulate
 from ._task import Task
 
 __all__ = ["cycle_map", "monodromy", "floquet", "replay_gait"]
@@ -50,18 +49,7 @@ def _start(task: Task, params, z: Array) -> tuple[Array, Array]:
 
 def _one_cycle(task: Task, params, z: Array):
     q0, qdot0 = _start(task, params, z)
-    traj = simulate(
-        task.system,
-        q0,
-        qdot0,
-        task.controls(params),
-        t_final=task.t_final,
-        n_steps=task.n_steps,
-        integrator=task.integrator,
-        save="final",
-        check_constraints=False,
-        divergence=None,
-    )
+    traj = task.rollout(params, start=(q0, qdot0), save="final")
     q, qdot = traj.q.reshape(-1, q0.shape[0])[-1], traj.qdot.reshape(-1, q0.shape[0])[-1]
     return reduced_state(task, q, qdot), q[:3]
 

@@ -149,9 +149,11 @@ class Task(eqx.Module):
         c0 = params.controls[0] * self.parameterization.scale
         return dyn.node(x0, c0)
 
-    def rollout(self, params) -> Trajectory:
-        """The optimizer's trajectory (``self.integrator``, ``n_steps`` steps; a gait: one period)."""
-        q0, qdot0 = self.initial_state(params)
+    def rollout(self, params, *, start=None, save="all") -> Trajectory:
+        """The optimizer's trajectory (``self.integrator``, ``n_steps`` steps; a gait: one period),
+        from ``start = (q0, qdot0)`` (default ``self.initial_state(params)``), with ``simulate``'s
+        ``save`` (default ``"all"``)."""
+        q0, qdot0 = self.initial_state(params) if start is None else start
         return simulate(
             self.system,
             q0,
@@ -161,6 +163,7 @@ class Task(eqx.Module):
             n_steps=self.n_steps,
             integrator=self.integrator,
             checkpoint=self.checkpoint,
+            save=save,
             check_constraints=False,
             divergence=None,
         )
