@@ -273,7 +273,29 @@ def _run_one(task: Task, params0, options: IPMOptions) -> tuple[IPMState, Array,
         return st, violation, objective(fns, st.chi, st.v)
 
 
-_run = jit(_run_one)
+def _one_after_another(fn):
+    """``fn(task, params0, options)`` that runs a ``jax.vmap``-ped batch one member after another
+    (``lax.map``, by :func:`jax.custom_batching.sequential_vmap`) instead of in lockstep.
+
+    A batched interior-point loop runs every member for as many iterations as the slowest one
+    needs, and evaluates both sides of its branches (restarts, the Hessian's two forms) for all;
+    one after another, a family costs the sum of its members' own solves (a family of 8 drive
+    gaits over the torque bound: 75x one solve in lockstep). The arrays of the arguments are the
+    mapped ones; the rest (the task's functions and static settings) is closed over."""
+
+    def run(task, params0, options):
+        dynamic, static = eqx.partition((task, params0, options), eqx.is_array)
+
+        @jax.custom_batching.sequential_vmap
+        def member(dynamic):
+            return fn(*eqx.combine(dynamic, static))
+
+        return member(dynamic)
+
+    return run
+
+
+_run = _one_after_another(jit(_run_one))
 
 
 @jit
