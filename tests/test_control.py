@@ -507,6 +507,32 @@ def test_solve_vmaps_over_goals(small_park):
         assert bool(converged[i]) and int(iterations[i]) == int(one.iterations)
 
 
+def _loops(jaxpr, inside=()):
+    """``(primitive, enclosing primitives)`` of every loop in a jaxpr, nested ones included."""
+    out = []
+    for eqn in jaxpr.eqns:
+        name = eqn.primitive.name
+        if name in ("while", "scan"):
+            out.append((name, inside))
+        for v in eqn.params.values():
+            for sub in v if isinstance(v, (tuple, list)) else (v,):
+                inner = getattr(sub, "jaxpr", sub)
+                if hasattr(inner, "eqns"):
+                    out += _loops(inner, (*inside, name))
+    return out
+
+
+def test_vmapped_solve_runs_its_members_one_after_another(small_park):
+    """Under ``jax.vmap`` the interior-point loop of each member runs inside a ``lax.map`` (a scan
+    over the members), not as one batched while loop that runs every member for the slowest one's
+    iterations (traced only)."""
+    task, p0 = small_park
+    goals = task.goal[None] + jnp.array([[0.0, 0.0, 0.0], [0.05, 0.01, 0.0]])
+    jaxpr = jax.make_jaxpr(jax.vmap(lambda g: lc.solve(task.with_options(goal=g), p0).iterations))(goals)
+    whiles = [inside for name, inside in _loops(jaxpr.jaxpr) if name == "while"]
+    assert whiles and all("scan" in inside for inside in whiles), whiles
+
+
 def test_curvature_tol_is_traced_and_reaches_the_same_optimum(small_park):
     """The dynamics' curvature from the first iteration (curvature_tol=inf) instead of below a
     violation of 0.1: the same optimum of parallel_park, and no new interior-point program."""
