@@ -444,7 +444,8 @@ def family(cfg: Config, log, n: int = 32) -> dict:
         f"{row['default_iterations']} iterations), {row['ratio']:.1f}x one warm solve ({single:.3f} s); "
         f"by continuation (lax.scan, each from its neighbour) {chain_repeat:.2f} s = "
         f"{row['continuation_ratio_default']:.1f}x, {int(chain_it.sum())} iterations, "
-        f"{row['continuation_converged']} converged, optima equal to {row['continuation_max_cost_difference']:.1e}"
+        f"{row['continuation_converged']} converged, "
+        f"optima equal to {row['continuation_max_cost_difference']:.1e}"
     )
     return row
 
