@@ -18,6 +18,7 @@ from .._numerics import plain
 from .._simulate import simulate
 from .._validation import check_positive_int, check_positive_number, is_concrete
 from ..integrators import RDP, AbstractIntegrator
+from . import _export
 from ._ipm import SOLVER_RESULTS, IPMOptions, IPMState, ipm_solve
 from ._kkt import constraints, objective, rollout
 from ._parameterizations import SampledControls
@@ -164,8 +165,22 @@ def solve(
         return dataclasses.replace(
             sol, starts=int(jax.tree_util.tree_leaves(params0)[0].shape[0]), starts_converged=n_ok
         )
+    # a top-level call with the persistent cache on: the program exported by an earlier process
+    sol = _export.call("solve", _solve_one, (task, params0, options), lambda: _template(params0))
+    if sol is not NotImplemented:
+        return sol
+    return _solve_one(task, params0, options)
+
+
+def _solve_one(task: Task, params0, options: IPMOptions) -> Solution:
     st, violation, _ = _run(_stopped(task), _stopped(params0), options)
     return _finish(task, st, violation)
+
+
+def _template(params0) -> Solution:
+    """A :class:`Solution` of the structure :func:`_solve_one` returns for ``params0``."""
+    z = 0
+    return Solution(params0, z, z, z, z, z, SOLVER_RESULTS.successful, z, z, (z, z), z)
 
 
 def _checked(task, params0, tol, max_iterations, hessian, curvature_tol, barrier):

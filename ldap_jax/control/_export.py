@@ -1,0 +1,226 @@
+"""Exported solver programs: a new process solves a problem structure it has solved before without
+tracing the solver again.
+
+A first ``lc.solve`` in a new process spends most of its time outside the solve itself: tracing
+the interior-point program in Python (2.4-3.7 s for ``parallel_park``), lowering it (0.6-0.9 s)
+and compiling it with XLA (tens of seconds; JAX's persistent compilation cache turns that into a
+read of about 1 s). :mod:`jax.export` keeps the traced and lowered program (StableHLO) as bytes,
+so a later process deserialises it and goes straight to XLA, which the persistent cache serves.
+
+The program is exported as a function of the task's *arrays* (goal, bounds, model parameters,
+horizon, the guess and the solver's tolerances): a task that differs only in those values uses
+the same export. Everything else is part of the key, and a program is only served for the exact
+key it was exported for:
+
+* the tree structure of the (task, guess, options) with every node's type (module and name) and
+  static data, and every static leaf (e.g. ``n_steps``, the integrator's order, ``hessian``);
+* the shape and dtype of every array;
+* the library's source (a hash of every ``.py`` file of the package), JAX's and jaxlib's
+  versions, ``jax_enable_x64``, the backend and the library's XLA options.
+
+A structure whose description holds an object identity (a ``<function ... at 0x...>``: a
+user-written term or system method captured as static data) is never exported: its identity does
+not survive the process. Only top-level calls use an export; under a user's ``jit``, ``vmap`` or
+``grad`` (the IFT sensitivities) ``lc.solve`` traces as always.
+
+The exports live in the persistent compilation cache's directory (``jax_compilation_cache_dir``,
+set by :func:`ldap_jax.enable_compilation_cache`), under ``ldap_jax_exports/``; without a cache
+directory nothing is exported. ``LDAP_JAX_EXPORT=0`` turns exports off.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import pathlib
+import re
+import tempfile
+import threading
+import warnings
+from collections.abc import Callable
+from typing import Any
+
+import equinox as eqx
+import jax
+import numpy as np
+
+__all__ = ["enabled", "export_dir", "call"]
+
+SUBDIR = "ldap_jax_exports"
+_ADDRESS = re.compile(r" at 0x[0-9a-fA-F]+")
+_lock = threading.Lock()
+_source: str | None = None
+_loaded: dict[Any, Callable | None] = {}  # in-process: key -> compiled callable (None: do not export)
+
+
+def enabled() -> bool:
+    """Whether exports are on: a persistent compilation cache directory is set and
+    ``LDAP_JAX_EXPORT`` is not ``0``."""
+    if os.environ.get("LDAP_JAX_EXPORT", "1").strip() in ("0", "false", "False"):
+        return False
+    return bool(jax.config.jax_compilation_cache_dir)
+
+
+def export_dir() -> pathlib.Path | None:
+    """The directory of the exported programs, or ``None`` without a compilation cache."""
+    root = jax.config.jax_compilation_cache_dir
+    return None if not root else pathlib.Path(root) / SUBDIR
+
+
+def _source_hash() -> str:
+    """A hash of the library's source, JAX's versions and the settings a program depends on."""
+    global _source
+    if _source is None:
+        import jaxlib
+
+        from .._compilation_cache import compiler_options
+
+        h = hashlib.sha256()
+        package = pathlib.Path(__file__).resolve().parents[1]
+        for path in sorted(package.rglob("*.py")):
+            h.update(str(path.relative_to(package)).encode())
+            h.update(path.read_bytes())
+        h.update(f"jax {jax.__version__} jaxlib {jaxlib.__version__}".encode())
+        h.update(repr(sorted((compiler_options() or {}).items())).encode())
+        _source = h.hexdigest()
+    return _source + f" x64={bool(jax.config.jax_enable_x64)} backend={jax.default_backend()}"
+
+
+def _describe(treedef) -> str:
+    """The tree structure with every node's type by module and name and its static data."""
+    data = treedef.node_data()
+    if data is None:  # a leaf
+        return "*"
+    kind, aux = data
+    children = ",".join(_describe(c) for c in treedef.children())
+    return f"{kind.__module__}.{kind.__qualname__}[{aux!r}]({children})"
+
+
+def _signature(name: str, args: tuple) -> tuple[str, list, Any, Any] | None:
+    """``(key, array leaves, static part, array treedef)`` of a call of program ``name`` on
+    ``args``, or ``None`` if the structure cannot be keyed across processes."""
+    arrays, static = eqx.partition(args, eqx.is_array)
+    leaves, treedef = jax.tree_util.tree_flatten(arrays)
+    static_leaves, static_def = jax.tree_util.tree_flatten(static)
+    text = "\n".join(
+        [
+            name,
+            _describe(treedef),
+            _describe(static_def),
+            repr(static_leaves),
+            repr([(tuple(x.shape), str(x.dtype)) for x in leaves]),
+            _source_hash(),
+        ]
+    )
+    if _ADDRESS.search(text):
+        return None
+    return hashlib.sha256(text.encode()).hexdigest()[:32], leaves, static, treedef
+
+
+def _paths(key: str) -> tuple[pathlib.Path, pathlib.Path]:
+    folder = export_dir()
+    return folder / f"{key}.jaxexport", folder / f"{key}.json"
+
+
+def _write(path: pathlib.Path, data: bytes) -> None:
+    """Write atomically (a concurrent reader sees the old file or the whole new one)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _compiled(exported) -> Callable:
+    from .._compilation_cache import compiler_options
+
+    options = compiler_options()
+    kwargs = {} if options is None else {"compiler_options": options}
+    return jax.jit(exported.call, **kwargs)
+
+
+def call(name: str, fun: Callable, args: tuple, out_template: Callable[[], Any]) -> Any:
+    """``fun(*args)`` through an exported program, or ``NotImplemented`` if this call cannot use
+    one (exports off, a traced argument, a structure without a key, an export that fails).
+
+    Args:
+        name: the program's name (part of the key).
+        fun: the function to run; traced only when no export exists for the key yet.
+        args: its arguments (a tuple of pytrees); array leaves become the program's arguments,
+            the rest is static (baked into the program and part of the key).
+        out_template: builds a pytree with the structure of ``fun``'s output (any leaves): the
+            output is rebuilt in it, after a check that it matches the structure recorded at
+            export.
+    """
+    if not enabled():
+        return NotImplemented
+    from .._compilation_cache import in_trace
+
+    if in_trace():
+        return NotImplemented
+    signature = _signature(name, args)
+    if signature is None:
+        return NotImplemented
+    key, leaves, static, treedef = signature
+    with _lock:
+        runner = _loaded.get(key, NotImplemented)
+        if runner is NotImplemented:
+            runner = _load_or_export(key, fun, leaves, static, treedef, out_template)
+            _loaded[key] = runner
+    if runner is None:
+        return NotImplemented
+    return runner(leaves)
+
+
+def _out_structure(out_template: Callable[[], Any]):
+    return jax.tree_util.tree_structure(out_template())
+
+
+def _load_or_export(key, fun, leaves, static, treedef, out_template) -> Callable | None:
+    from jax import export as jex
+
+    program_path, meta_path = _paths(key)
+    out_def = _out_structure(out_template)
+    exported = None
+    if program_path.exists() and meta_path.exists():
+        try:
+            meta = json.loads(meta_path.read_text())
+            candidate = jex.deserialize(bytearray(program_path.read_bytes()))
+            if meta.get("out") == _describe(out_def) and candidate.out_tree.num_leaves == out_def.num_leaves:
+                exported = candidate
+        except Exception:  # a damaged or foreign file: export again
+            exported = None
+    if exported is None:
+
+        def flat(*xs):
+            arrays = jax.tree_util.tree_unflatten(treedef, xs)
+            out = fun(*eqx.combine(arrays, static))
+            return tuple(jax.tree_util.tree_leaves(out))
+
+        try:
+            avals = [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in leaves]
+            exported = jex.export(jax.jit(flat))(*avals)
+            if exported.out_tree.num_leaves != out_def.num_leaves:
+                return None
+            _write(program_path, bytes(exported.serialize()))
+            _write(meta_path, json.dumps({"out": _describe(out_def)}).encode())
+        except Exception as err:  # e.g. a host callback: not exportable, trace as usual
+            warnings.warn(
+                f"lc.solve could not export its program ({type(err).__name__}: {err}); it is traced "
+                "in every new process (LDAP_JAX_EXPORT=0 turns exports off)",
+                stacklevel=4,
+            )
+            return None
+    compiled = _compiled(exported)
+
+    def runner(xs):
+        outs = compiled(*[np.asarray(x) if not isinstance(x, jax.Array) else x for x in xs])
+        return jax.tree_util.tree_unflatten(out_def, outs)
+
+    return runner
