@@ -1,0 +1,97 @@
+"""``lc.solve``'s exported programs (``ldap_jax/control/_export.py``): a program exported by one
+call and read back from disk gives the solution of the traced program; a structure other than
+the exported one is never served it."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import compiled_programs
+
+import ldap_jax as lj
+from ldap_jax import control as lc
+from ldap_jax.control import _export, _solve
+
+
+@pytest.fixture
+def exports(tmp_path, monkeypatch):
+    """Exports on, in an empty folder of their own, with nothing loaded in this process."""
+    monkeypatch.setenv("LDAP_JAX_EXPORT", "1")
+    if not jax.config.jax_compilation_cache_dir:  # the suite's conftest sets one
+        pytest.skip("no persistent compilation cache directory")
+    monkeypatch.setattr(_export, "export_dir", lambda: tmp_path)
+    monkeypatch.setattr(_export, "_loaded", {})
+    return tmp_path
+
+
+def _traced(task, params0=None, **kwargs):
+    """The solve without exports (the traced program)."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("LDAP_JAX_EXPORT", "0")
+        return lc.solve(task, params0, **kwargs)
+
+
+def _key(task, params0=None, **kwargs):
+    options, params0, _ = _solve._checked(task, params0, 1e-8, 1000, "base", 0.1, None)
+    signature = _export._signature("solve", (_solve._solver_view(task), params0, options))
+    return None if signature is None else signature[0]
+
+
+def _assert_same(a: lc.Solution, b: lc.Solution):
+    assert jax.tree_util.tree_structure(a) == jax.tree_util.tree_structure(b)
+    assert lc.SOLVER_RESULTS[a.result] == lc.SOLVER_RESULTS[b.result]
+    assert int(a.iterations) == int(b.iterations)
+    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-12, atol=1e-12)
+
+
+def test_reloaded_export_gives_the_traced_solution(exports):
+    """parallel_park (N = 40, RDP order 2): the first call exports the program to disk; a process
+    that has loaded nothing (the in-process table cleared) reads it back without tracing the solver,
+    and both give the traced program's solution (every leaf to 1e-12, the same iterations)."""
+    task = lc.parallel_park(integrator=lj.RDP(), n_steps=40)
+    reference = _traced(task)
+    first = lc.solve(task)
+    files = sorted(p.suffix for p in exports.iterdir())
+    assert files == [".jaxexport", ".json"], files
+    _export._loaded.clear()
+    with compiled_programs("trace") as traced:
+        again = lc.solve(task)
+    assert not {"flat", "_run_one", "_finish"} & set(traced), traced
+    assert bool(reference.converged)
+    _assert_same(first, reference)
+    _assert_same(again, reference)
+
+
+def test_values_are_arguments_and_structures_are_keys(exports):
+    """A new goal, mass or tolerance is an argument of the same export (same key, and the solution
+    of the traced program for those values); a new number of steps, integrator order, Hessian
+    option or dtype is another key; a structure holding a function is not exported."""
+    task = lc.parallel_park(integrator=lj.RDP(), n_steps=40)
+    key = _key(task)
+    moved = task.with_options(goal=jnp.array([0.1, 0.55, 0.05]), system=lj.Car(m=1.3))
+    assert _key(moved) == key
+    assert _key(task, tol=1e-10) == key
+    assert _key(task.with_options(n_steps=41)) not in (None, key)
+    assert _key(task.with_options(integrator=lj.RDP(order=4))) not in (None, key)
+    assert _key(task.with_options(integrator=lj.RDP(retraction="cayley"))) not in (None, key)
+    options, params0, _ = _solve._checked(task, None, 1e-8, 1000, "exact", 0.1, None)
+    exact = _export._signature("solve", (_solve._solver_view(task), params0, options))[0]
+    assert exact != key
+    assert _export._signature("solve", (task, lambda x: x)) is None
+    # the export serves another goal and mass with their own solution
+    lc.solve(task)
+    _assert_same(lc.solve(moved), _traced(moved))
+    assert len(list(exports.glob("*.jaxexport"))) == 1
+
+
+def test_exports_off_inside_traces_and_without_a_cache(exports, monkeypatch):
+    """Under a user's jit the solver is traced as written (no export is read or written); with
+    LDAP_JAX_EXPORT=0 or no cache directory, call declines."""
+    task = lc.parallel_park(integrator=lj.RDP(), n_steps=40)
+    cost = jax.jit(lambda g: lc.solve(task.with_options(goal=g)).cost)(task.goal)
+    assert not list(exports.iterdir())
+    np.testing.assert_allclose(float(cost), float(_traced(task).cost), rtol=1e-12)
+    monkeypatch.setenv("LDAP_JAX_EXPORT", "0")
+    assert not _export.enabled()
+    assert _export.call("solve", None, (task,), lambda: None) is NotImplemented
