@@ -53,7 +53,7 @@ def test_reloaded_export_gives_the_traced_solution(exports):
     reference = _traced(task)
     first = lc.solve(task)
     files = sorted(p.suffix for p in exports.iterdir())
-    assert files == [".jaxexport", ".json"], files
+    assert files == [".jaxexport", ".jaxexport", ".json", ".json"], files  # the run and the finish
     _export._loaded.clear()
     with compiled_programs("trace") as traced:
         again = lc.solve(task)
@@ -82,7 +82,26 @@ def test_values_are_arguments_and_structures_are_keys(exports):
     # the export serves another goal and mass with their own solution
     lc.solve(task)
     _assert_same(lc.solve(moved), _traced(moved))
-    assert len(list(exports.glob("*.jaxexport"))) == 1
+    assert len(list(exports.glob("*.jaxexport"))) == 2
+
+
+def test_gradients_use_the_exported_run(exports):
+    """d(optimal effort)/d(goal) after a solve that exported its programs: the interior-point run
+    is the exported program (not traced again; its inputs are cut from differentiation), the IFT
+    step is traced, and the gradient is the one without exports (to 1e-10)."""
+    task = lc.parallel_park(integrator=lj.RDP(), n_steps=40)
+    lc.solve(task)
+
+    def effort(goal):
+        return lc.solve(task.with_options(goal=goal)).cost
+
+    with compiled_programs("trace") as traced:
+        grad = jax.grad(effort)(task.goal)
+    assert "_run_one" not in traced and "flat" not in traced, traced
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("LDAP_JAX_EXPORT", "0")
+        want = jax.grad(effort)(task.goal)
+    np.testing.assert_allclose(np.asarray(grad), np.asarray(want), rtol=1e-10, atol=1e-12)
 
 
 def test_exports_off_inside_traces_and_without_a_cache(exports, monkeypatch):

@@ -145,9 +145,12 @@ def _compiled(exported) -> Callable:
     return jax.jit(exported.call, **kwargs)
 
 
-def call(name: str, fun: Callable, args: tuple, out_template: Callable[[], Any]) -> Any:
+def call(
+    name: str, fun: Callable, args: tuple, out_template: Callable[[], Any], *, top_level: bool = False
+) -> Any:
     """``fun(*args)`` through an exported program, or ``NotImplemented`` if this call cannot use
-    one (exports off, a traced argument, a structure without a key, an export that fails).
+    one (exports off, a traced argument, a call under a trace that stages code out, a structure
+    without a key, an export that fails).
 
     Args:
         name: the program's name (part of the key).
@@ -157,12 +160,18 @@ def call(name: str, fun: Callable, args: tuple, out_template: Callable[[], Any])
         out_template: builds a pytree with the structure of ``fun``'s output (any leaves): the
             output is rebuilt in it, after a check that it matches the structure recorded at
             export.
+        top_level: only outside every JAX trace. Otherwise also on concrete arguments under
+            ``grad``/``jvp`` or a ``vmap`` they are not batched over (the program then runs on
+            them as it is, outside those traces, like the library's :func:`~ldap_jax.jit`).
     """
     if not enabled():
         return NotImplemented
-    from .._compilation_cache import in_trace
+    from .._compilation_cache import _runs_at_top_level, _traced, in_trace
 
-    if in_trace():
+    inside = in_trace()
+    if inside and (top_level or _traced(args) or not _runs_at_top_level(args, False)):
+        return NotImplemented
+    if inside and not _can_leave_traces():  # pragma: no cover - a future JAX
         return NotImplemented
     signature = _signature(name, args)
     if signature is None:
@@ -171,11 +180,33 @@ def call(name: str, fun: Callable, args: tuple, out_template: Callable[[], Any])
     with _lock:
         runner = _loaded.get(key, NotImplemented)
         if runner is NotImplemented:
-            runner = _load_or_export(key, fun, leaves, static, treedef, out_template)
+            with _outside_traces(inside):
+                runner = _load_or_export(key, fun, leaves, static, treedef, out_template)
             _loaded[key] = runner
     if runner is None:
         return NotImplemented
-    return runner(leaves)
+    with _outside_traces(inside):
+        return runner(leaves)
+
+
+def _can_leave_traces() -> bool:
+    try:
+        from jax._src import core
+
+        return hasattr(core, "set_current_trace") and hasattr(core, "eval_trace")
+    except ImportError:  # pragma: no cover
+        return False
+
+
+def _outside_traces(inside: bool):
+    """A context that runs under JAX's evaluation trace (values in, values out)."""
+    import contextlib
+
+    if not inside:
+        return contextlib.nullcontext()
+    from jax._src import core
+
+    return core.set_current_trace(core.eval_trace)
 
 
 def _out_structure(out_template: Callable[[], Any]):

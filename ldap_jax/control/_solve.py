@@ -165,20 +165,30 @@ def solve(
         return dataclasses.replace(
             sol, starts=int(jax.tree_util.tree_leaves(params0)[0].shape[0]), starts_converged=n_ok
         )
-    # a top-level call with the persistent cache on: the program exported by an earlier process
-    sol = _export.call("solve", _solve_one, (task, params0, options), lambda: _template(params0))
-    if sol is not NotImplemented:
-        return sol
     return _solve_one(task, params0, options)
 
 
 def _solve_one(task: Task, params0, options: IPMOptions) -> Solution:
-    st, violation, _ = _run(_stopped(task), _stopped(params0), options)
-    return _finish(task, st, violation)
+    # With the persistent cache on, the run and the finish are the programs an earlier process
+    # exported (_export: no tracing). The run's inputs are cut from differentiation, so it can be
+    # the exported program under grad too; the finish (the IFT step) only at the top level.
+    args = (_stopped(task), _stopped(params0), options)
+    run = _export.call("run", _run_one, args, _run_template)
+    st, violation, _ = _run(*args) if run is NotImplemented else run
+    sol = _export.call(
+        "finish", _finish.__wrapped__, (task, st, violation), lambda: _template(params0), top_level=True
+    )
+    return _finish(task, st, violation) if sol is NotImplemented else sol
+
+
+def _run_template():
+    """A pytree of the structure :func:`_run_one` returns."""
+    z = 0
+    return IPMState(*([z] * (len(IPMState._fields) - 1)), SOLVER_RESULTS.successful), z, z
 
 
 def _template(params0) -> Solution:
-    """A :class:`Solution` of the structure :func:`_solve_one` returns for ``params0``."""
+    """A :class:`Solution` of the structure :func:`_finish` returns for ``params0``."""
     z = 0
     return Solution(params0, z, z, z, z, z, SOLVER_RESULTS.successful, z, z, (z, z), z)
 
