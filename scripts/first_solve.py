@@ -2,6 +2,7 @@
 
     python scripts/first_solve.py                 # cold, then warm, each in a new process
     python scripts/first_solve.py --runs 3        # three warm processes
+    python scripts/first_solve.py --cache DIR --runs 0   # one process on the cache DIR
     python scripts/first_solve.py --no-export     # the compilation cache only (no exported programs)
 
 Each measurement is a new Python process (``--child``) that imports the library, turns on the
@@ -10,7 +11,7 @@ first process is cold and the later ones warm; ``--cache DIR`` to keep it) and t
 
 * ``import``: ``import ldap_jax`` and ``ldap_jax.control``;
 * ``first``: the first ``lc.solve(lc.parallel_park())`` (everything: the task's construction,
-  tracing, lowering, XLA compilation or cache reads, the run);
+  tracing, lowering, XLA compilation or cache reads, the run), and of it the task's construction;
 * ``second``: a second solve of the same task in the same process (the repeat time);
 * per program: JAX's own monitoring events (``jax.monitoring``): Python tracing to a jaxpr,
   lowering to StableHLO, XLA compilation, persistent-cache reads, summed per program name.
@@ -61,7 +62,9 @@ def child(cache: str) -> dict:
     jax.monitoring.register_event_duration_secs_listener(listener)
 
     t1 = time.perf_counter()
-    sol = lc.solve(lc.parallel_park())
+    task = lc.parallel_park()
+    t_task = time.perf_counter() - t1
+    sol = lc.solve(task)
     jax.block_until_ready(sol)
     t_first = time.perf_counter() - t1
     first_programs = {k: dict(v) for k, v in per_program.items()}
@@ -73,6 +76,7 @@ def child(cache: str) -> dict:
     return {
         "import": t_import,
         "first": t_first,
+        "task": t_task,
         "second": t_second,
         "converged": bool(sol.converged),
         "iterations": int(sol.iterations),
@@ -120,7 +124,7 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--cache", default=None, help="compilation cache directory (default: a new temporary one)")
-    p.add_argument("--runs", type=int, default=1, help="warm processes after the cold one")
+    p.add_argument("--runs", type=int, default=1, help="processes after the first one")
     p.add_argument("--no-export", action="store_true", help="do not use exported solver programs")
     p.add_argument("--top", type=int, default=8, help="programs listed per process")
     p.add_argument("--json", default=None, help="write the measurements to this file")
@@ -130,11 +134,12 @@ def main() -> None:
         return
     with tempfile.TemporaryDirectory(prefix="ldap_jax_first_solve_") as tmp:
         cache = args.cache or tmp
-        results = {"cold": run_child(cache, not args.no_export)}
-        report("cold", results["cold"], args.top)
-        for i in range(args.runs):
-            results[f"warm{i + 1}"] = r = run_child(cache, not args.no_export)
-            report(f"warm {i + 1}", r, args.top)
+        results = {}
+        for i in range(args.runs + 1):
+            cold = not os.path.isdir(cache) or not os.listdir(cache)
+            label = "cold" if cold else f"warm {i}"
+            results[label] = r = run_child(cache, not args.no_export)
+            report(label, r, args.top)
     if args.json:
         with open(args.json, "w") as f:
             json.dump(results, f, indent=1)

@@ -137,12 +137,16 @@ def _write(path: pathlib.Path, data: bytes) -> None:
         raise
 
 
-def _compiled(exported) -> Callable:
+def _compiled(exported, name: str) -> Callable:
     from .._compilation_cache import compiler_options
 
+    def call(*xs):
+        return exported.call(*xs)
+
+    call.__name__ = call.__qualname__ = f"exported_{name}"
     options = compiler_options()
     kwargs = {} if options is None else {"compiler_options": options}
-    return jax.jit(exported.call, **kwargs)
+    return jax.jit(call, **kwargs)
 
 
 def call(
@@ -181,7 +185,7 @@ def call(
         runner = _loaded.get(key, NotImplemented)
         if runner is NotImplemented:
             with _outside_traces(inside):
-                runner = _load_or_export(key, fun, leaves, static, treedef, out_template)
+                runner = _load_or_export(name, key, fun, leaves, static, treedef, out_template)
             _loaded[key] = runner
     if runner is None:
         return NotImplemented
@@ -213,7 +217,7 @@ def _out_structure(out_template: Callable[[], Any]):
     return jax.tree_util.tree_structure(out_template())
 
 
-def _load_or_export(key, fun, leaves, static, treedef, out_template) -> Callable | None:
+def _load_or_export(name, key, fun, leaves, static, treedef, out_template) -> Callable | None:
     from jax import export as jex
 
     program_path, meta_path = _paths(key)
@@ -234,6 +238,8 @@ def _load_or_export(key, fun, leaves, static, treedef, out_template) -> Callable
             out = fun(*eqx.combine(arrays, static))
             return tuple(jax.tree_util.tree_leaves(out))
 
+        flat.__name__ = flat.__qualname__ = f"export_{name}"
+
         try:
             avals = [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in leaves]
             exported = jex.export(jax.jit(flat))(*avals)
@@ -248,7 +254,7 @@ def _load_or_export(key, fun, leaves, static, treedef, out_template) -> Callable
                 stacklevel=4,
             )
             return None
-    compiled = _compiled(exported)
+    compiled = _compiled(exported, name)
 
     def runner(xs):
         outs = compiled(*[np.asarray(x) if not isinstance(x, jax.Array) else x for x in xs])
