@@ -65,8 +65,9 @@ def test_reloaded_export_gives_the_traced_solution(exports):
 
 def test_values_are_arguments_and_structures_are_keys(exports):
     """A new goal, mass or tolerance is an argument of the same export (same key, and the solution
-    of the traced program for those values); a new number of steps, integrator order, Hessian
-    option or dtype is another key; a structure holding a function is not exported."""
+    of the traced program for those values); a new number of steps, integrator order, retraction
+    or Hessian option is another key; a structure holding a function or a class of the user's is
+    not exported."""
     task = lc.parallel_park(integrator=lj.RDP(), n_steps=40)
     key = _key(task)
     moved = task.with_options(goal=jnp.array([0.1, 0.55, 0.05]), system=lj.Car(m=1.3))
@@ -79,6 +80,11 @@ def test_values_are_arguments_and_structures_are_keys(exports):
     exact = _export._signature("solve", (_solve._solver_view(task), params0, options))[0]
     assert exact != key
     assert _export._signature("solve", (task, lambda x: x)) is None
+
+    class MyCar(lj.Car):  # code outside the key: never exported
+        pass
+
+    assert _export._signature("solve", (task.with_options(system=MyCar()),)) is None
     # the export serves another goal and mass with their own solution
     lc.solve(task)
     _assert_same(lc.solve(moved), _traced(moved))

@@ -15,13 +15,17 @@ key it was exported for:
 * the tree structure of the (task, guess, options) with every node's type (module and name) and
   static data, and every static leaf (e.g. ``n_steps``, the integrator's order, ``hessian``);
 * the shape and dtype of every array;
-* the library's source (a hash of every ``.py`` file of the package), JAX's and jaxlib's
-  versions, ``jax_enable_x64``, the backend and the library's XLA options.
+* the library's source (a hash of every ``.py`` file of the package), JAX's, jaxlib's and
+  equinox's versions, ``jax_enable_x64``, the backend and the library's XLA options.
 
 A structure whose description holds an object identity (a ``<function ... at 0x...>``: a
-user-written term or system method captured as static data) is never exported: its identity does
-not survive the process. Only top-level calls use an export; under a user's ``jit``, ``vmap`` or
-``grad`` (the IFT sensitivities) ``lc.solve`` traces as always.
+user-written term or system method captured as static data) or a type from outside the library,
+JAX, equinox and NumPy (a class of your own: its code is not in the key) is never exported.
+
+``lc.solve`` exports two programs: the interior-point run and the finish (the optimum with its
+IFT derivative rule, the model-error estimate). Under a user's ``jit`` or ``vmap`` both are traced
+as always; under ``grad``/``jvp`` the run's inputs are cut from differentiation, so the run is
+the exported program, and the finish (whose derivative rule gives the sensitivities) is traced.
 
 The exports live in the persistent compilation cache's directory (``jax_compilation_cache_dir``,
 set by :func:`ldap_jax.enable_compilation_cache`), under ``ldap_jax_exports/``; without a cache
@@ -81,20 +85,36 @@ def _source_hash() -> str:
         for path in sorted(package.rglob("*.py")):
             h.update(str(path.relative_to(package)).encode())
             h.update(path.read_bytes())
-        h.update(f"jax {jax.__version__} jaxlib {jaxlib.__version__}".encode())
+        h.update(f"jax {jax.__version__} jaxlib {jaxlib.__version__} equinox {eqx.__version__}".encode())
         h.update(repr(sorted((compiler_options() or {}).items())).encode())
         _source = h.hexdigest()
     return _source + f" x64={bool(jax.config.jax_enable_x64)} backend={jax.default_backend()}"
 
 
-def _describe(treedef) -> str:
-    """The tree structure with every node's type by module and name and its static data."""
+#: modules whose types may appear in a key: their code is in the key (the library's source, the
+#: versions of JAX, jaxlib and equinox) or fixed (Python's built-ins, NumPy's scalar types)
+_KNOWN_MODULES = ("ldap_jax", "builtins", "equinox", "jax", "jaxlib", "numpy")
+
+
+def _known(kind: type) -> bool:
+    module = getattr(kind, "__module__", None) or ""
+    return module.split(".")[0] in _KNOWN_MODULES
+
+
+def _describe(treedef, strict: bool = True) -> str | None:
+    """The tree structure with every node's type by module and name and its static data, or
+    ``None`` (``strict``) if a node's type comes from code outside the key (e.g. a class of your
+    own: its methods may change between processes while its name stays)."""
     data = treedef.node_data()
     if data is None:  # a leaf
         return "*"
     kind, aux = data
-    children = ",".join(_describe(c) for c in treedef.children())
-    return f"{kind.__module__}.{kind.__qualname__}[{aux!r}]({children})"
+    if strict and not _known(kind):
+        return None
+    children = [_describe(c, strict) for c in treedef.children()]
+    if None in children:
+        return None
+    return f"{kind.__module__}.{kind.__qualname__}[{aux!r}]({','.join(children)})"
 
 
 def _signature(name: str, args: tuple) -> tuple[str, list, Any, Any] | None:
@@ -103,11 +123,13 @@ def _signature(name: str, args: tuple) -> tuple[str, list, Any, Any] | None:
     arrays, static = eqx.partition(args, eqx.is_array)
     leaves, treedef = jax.tree_util.tree_flatten(arrays)
     static_leaves, static_def = jax.tree_util.tree_flatten(static)
+    described = _describe(treedef), _describe(static_def)
+    if None in described or not all(_known(type(x)) for x in static_leaves):
+        return None
     text = "\n".join(
         [
             name,
-            _describe(treedef),
-            _describe(static_def),
+            *described,
             repr(static_leaves),
             repr([(tuple(x.shape), str(x.dtype)) for x in leaves]),
             _source_hash(),
@@ -130,6 +152,7 @@ def _write(path: pathlib.Path, data: bytes) -> None:
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(data)
+        os.chmod(tmp, 0o644)  # as the cache's own files (mkstemp makes them private)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -227,7 +250,10 @@ def _load_or_export(name, key, fun, leaves, static, treedef, out_template) -> Ca
         try:
             meta = json.loads(meta_path.read_text())
             candidate = jex.deserialize(bytearray(program_path.read_bytes()))
-            if meta.get("out") == _describe(out_def) and candidate.out_tree.num_leaves == out_def.num_leaves:
+            if (
+                meta.get("out") == _describe(out_def, strict=False)
+                and candidate.out_tree.num_leaves == out_def.num_leaves
+            ):
                 exported = candidate
         except Exception:  # a damaged or foreign file: export again
             exported = None
@@ -246,7 +272,7 @@ def _load_or_export(name, key, fun, leaves, static, treedef, out_template) -> Ca
             if exported.out_tree.num_leaves != out_def.num_leaves:
                 return None
             _write(program_path, bytes(exported.serialize()))
-            _write(meta_path, json.dumps({"out": _describe(out_def)}).encode())
+            _write(meta_path, json.dumps({"out": _describe(out_def, strict=False)}).encode())
         except Exception as err:  # e.g. a host callback: not exportable, trace as usual
             warnings.warn(
                 f"lc.solve could not export its program ({type(err).__name__}: {err}); it is traced "
