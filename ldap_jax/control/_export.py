@@ -56,6 +56,7 @@ _ADDRESS = re.compile(r" at 0x[0-9a-fA-F]+")
 _lock = threading.Lock()
 _source: str | None = None
 _loaded: dict[Any, Callable | None] = {}  # in-process: key -> compiled callable (None: do not export)
+_keys: dict[Any, str | bool] = {}  # in-process: a call's structures -> its key (False: none)
 
 
 def enabled() -> bool:
@@ -123,9 +124,33 @@ def _signature(name: str, args: tuple) -> tuple[str, list, Any, Any] | None:
     arrays, static = eqx.partition(args, eqx.is_array)
     leaves, treedef = jax.tree_util.tree_flatten(arrays)
     static_leaves, static_def = jax.tree_util.tree_flatten(static)
+    # a repeat call: the key by the tree structures' own equality (3 ms -> well under 1 ms a call)
+    try:
+        fast = (
+            name,
+            treedef,
+            static_def,
+            tuple((type(x), x) for x in static_leaves),
+            tuple((x.shape, x.dtype) for x in leaves),
+            bool(jax.config.jax_enable_x64),
+        )
+        key = _keys.get(fast)
+    except TypeError:  # unhashable static data
+        fast = key = None
+    if key is None:
+        key = _key(name, leaves, treedef, static_leaves, static_def)
+        if fast is not None:
+            if len(_keys) > 10_000:  # pragma: no cover - bound the bookkeeping
+                _keys.clear()
+            _keys[fast] = key
+    return None if key is False else (key, leaves, static, treedef)
+
+
+def _key(name, leaves, treedef, static_leaves, static_def) -> str | bool:
+    """The key of a program (see the module's docstring), or ``False`` for none."""
     described = _describe(treedef), _describe(static_def)
     if None in described or not all(_known(type(x)) for x in static_leaves):
-        return None
+        return False
     text = "\n".join(
         [
             name,
@@ -136,8 +161,8 @@ def _signature(name: str, args: tuple) -> tuple[str, list, Any, Any] | None:
         ]
     )
     if _ADDRESS.search(text):
-        return None
-    return hashlib.sha256(text.encode()).hexdigest()[:32], leaves, static, treedef
+        return False
+    return hashlib.sha256(text.encode()).hexdigest()[:32]
 
 
 def _paths(key: str) -> tuple[pathlib.Path, pathlib.Path]:
