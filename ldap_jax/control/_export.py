@@ -34,6 +34,7 @@ directory nothing is exported. ``LDAP_JAX_EXPORT=0`` turns exports off.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -252,8 +253,6 @@ def _can_leave_traces() -> bool:
 
 def _outside_traces(inside: bool):
     """A context that runs under JAX's evaluation trace (values in, values out)."""
-    import contextlib
-
     if not inside:
         return contextlib.nullcontext()
     from jax._src import core
@@ -270,7 +269,7 @@ def _load_or_export(name, key, fun, leaves, static, treedef, out_template) -> Ca
 
     program_path, meta_path = _paths(key)
     out_def = _out_structure(out_template)
-    exported = None
+    exported, lapack = None, True
     if program_path.exists() and meta_path.exists():
         try:
             meta = json.loads(meta_path.read_text())
@@ -279,7 +278,7 @@ def _load_or_export(name, key, fun, leaves, static, treedef, out_template) -> Ca
                 meta.get("out") == _describe(out_def, strict=False)
                 and candidate.out_tree.num_leaves == out_def.num_leaves
             ):
-                exported = candidate
+                exported, lapack = candidate, meta.get("lapack", True) is not False
         except Exception:  # a damaged or foreign file: export again
             exported = None
     if exported is None:
@@ -296,8 +295,10 @@ def _load_or_export(name, key, fun, leaves, static, treedef, out_template) -> Ca
             exported = jex.export(jax.jit(flat))(*avals)
             if exported.out_tree.num_leaves != out_def.num_leaves:
                 return None
+            lapack = "lapack" in exported.mlir_module()  # a LAPACK call (none in the solver's)
             _write(program_path, bytes(exported.serialize()))
-            _write(meta_path, json.dumps({"out": _describe(out_def, strict=False)}).encode())
+            meta = {"out": _describe(out_def, strict=False), "lapack": lapack}
+            _write(meta_path, json.dumps(meta).encode())
         except Exception as err:  # e.g. a host callback: not exportable, trace as usual
             warnings.warn(
                 f"lc.solve could not export its program ({type(err).__name__}: {err}); it is traced "
@@ -306,9 +307,46 @@ def _load_or_export(name, key, fun, leaves, static, treedef, out_template) -> Ca
             )
             return None
     compiled = _compiled(exported, name)
+    first = [not lapack]
 
     def runner(xs):
-        outs = compiled(*[np.asarray(x) if not isinstance(x, jax.Array) else x for x in xs])
+        xs = [x if isinstance(x, jax.Array) else np.asarray(x) for x in xs]
+        if first[0]:  # the call that lowers the program
+            first[0] = False
+            with _lock, _without_lapack_setup():
+                outs = compiled(*xs)
+        else:
+            outs = compiled(*xs)
         return jax.tree_util.tree_unflatten(out_def, outs)
 
     return runner
+
+
+@contextlib.contextmanager
+def _without_lapack_setup():
+    """Lower an exported program without JAX's set-up of LAPACK on the CPU, in this thread.
+
+    Lowering any exported program for the CPU first sets up jaxlib's LAPACK kernels, which imports
+    SciPy's LAPACK (``scipy.linalg``): 0.4-1.4 s of a warm first solve of 1-3 s, measured. The
+    solver's programs hold no LAPACK call (checked at export: ``"lapack"`` in the module's text),
+    so theirs is skipped; a program with one is lowered as JAX does. Other threads are unaffected.
+    """
+    try:
+        from jax._src.export import _export as internal
+
+        original = internal._ensure_backends_initialized
+    except (ImportError, AttributeError):  # pragma: no cover - a future JAX: as JAX does
+        yield
+        return
+    thread = threading.get_ident()
+
+    def ensure(platforms):
+        if threading.get_ident() != thread:
+            return original(platforms)
+        return None
+
+    internal._ensure_backends_initialized = ensure
+    try:
+        yield
+    finally:
+        internal._ensure_backends_initialized = original
