@@ -2,6 +2,11 @@
 call and read back from disk gives the solution of the traced program; a structure other than
 the exported one is never served it."""
 
+import json
+import os
+import subprocess
+import sys
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -120,3 +125,46 @@ def test_exports_off_inside_traces_and_without_a_cache(exports, monkeypatch):
     monkeypatch.setenv("LDAP_JAX_EXPORT", "0")
     assert not _export.enabled()
     assert _export.call("solve", None, (task,), lambda: None) is NotImplemented
+
+
+NEW_PROCESS = """
+import json, sys
+import jax
+jax.config.update("jax_enable_x64", True)
+import numpy as np
+import ldap_jax as lj
+from ldap_jax import control as lc
+lj.enable_compilation_cache(sys.argv[1])
+traced = []
+def listen(event, duration, **kwargs):
+    if event == "/jax/core/compile/jaxpr_trace_duration":
+        traced.append(kwargs.get("fun_name"))
+jax.monitoring.register_event_duration_secs_listener(listen)
+sol = lc.solve(lc.parallel_park(integrator=lj.RDP(), n_steps=40))
+print(json.dumps({"params": np.asarray(sol.params).tolist(), "iterations": int(sol.iterations),
+                  "traced": traced, "scipy": "scipy.linalg" in sys.modules}))
+"""
+
+
+def test_a_new_process_solves_from_the_export(tmp_path):
+    """Two new processes on one cache folder (the suite's, so that the XLA programs are compiled
+    once across runs): the second traces neither the run nor the finish, imports no SciPy (JAX's
+    LAPACK set-up is skipped for programs without LAPACK calls), and both give this process's
+    traced solution to 1e-12."""
+    cache = os.environ.get("JAX_COMPILATION_CACHE_DIR") or str(tmp_path)
+    env = dict(os.environ, LDAP_JAX_EXPORT="1")
+    runs = []
+    for _ in range(2):
+        res = subprocess.run(
+            [sys.executable, "-c", NEW_PROCESS, cache], capture_output=True, text=True, env=env, timeout=900
+        )
+        assert res.returncode == 0, res.stderr[-3000:]
+        runs.append(json.loads(res.stdout.strip().splitlines()[-1]))
+    second = runs[1]
+    names = {"export_run", "export_finish", "_run_one", "_finish"}
+    assert not names & set(second["traced"]), second["traced"]
+    assert not second["scipy"]
+    want = _traced(lc.parallel_park(integrator=lj.RDP(), n_steps=40))
+    for run in runs:
+        assert run["iterations"] == int(want.iterations)
+        np.testing.assert_allclose(np.asarray(run["params"]), np.asarray(want.params), rtol=1e-12, atol=1e-12)
