@@ -118,7 +118,11 @@ def solve(
     parameters, goal, bounds, period) give the sensitivities of the optimum by the implicit
     function theorem at the solution (not by differentiating the iterations). Derivatives of a
     solve that did not converge are NaN. A batch of problems under ``jax.vmap`` runs on one
-    device; :func:`ldap_jax.shard_vmap` splits it over the devices.
+    device; :func:`ldap_jax.shard_vmap` splits it over the devices. With JAX's persistent
+    compilation cache on (:func:`ldap_jax.enable_compilation_cache`), the solver's programs are
+    also kept traced (``jax.export``, in the cache folder): a new process that solves a problem of
+    the same structure (other goal, bounds, model parameters or tolerances) neither traces nor
+    compiles them (``LDAP_JAX_EXPORT=0`` turns this off).
 
     Args:
         task: a task with per-step sampled controls (:class:`SampledControls`).
