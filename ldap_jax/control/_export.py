@@ -283,9 +283,12 @@ def _load_or_export(name, key, fun, leaves, static, treedef, out_template) -> Ca
             exported = None
     if exported is None:
 
+        traced_out = []
+
         def flat(*xs):
             arrays = jax.tree_util.tree_unflatten(treedef, xs)
             out = fun(*eqx.combine(arrays, static))
+            traced_out.append(jax.tree_util.tree_structure(out))
             return tuple(jax.tree_util.tree_leaves(out))
 
         flat.__name__ = flat.__qualname__ = f"export_{name}"
@@ -293,7 +296,7 @@ def _load_or_export(name, key, fun, leaves, static, treedef, out_template) -> Ca
         try:
             avals = [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in leaves]
             exported = jex.export(jax.jit(flat))(*avals)
-            if exported.out_tree.num_leaves != out_def.num_leaves:
+            if traced_out[-1] != out_def:  # the template does not describe the output
                 return None
             lapack = "lapack" in exported.mlir_module()  # a LAPACK call (none in the solver's)
             _write(program_path, bytes(exported.serialize()))
