@@ -282,7 +282,6 @@ def _load_or_export(name, key, fun, leaves, static, treedef, out_template) -> Ca
         except Exception:  # a damaged or foreign file: export again
             exported = None
     if exported is None:
-
         traced_out = []
 
         def flat(*xs):
