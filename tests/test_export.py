@@ -97,22 +97,26 @@ def test_values_are_arguments_and_structures_are_keys(exports):
 
 
 def test_gradients_use_the_exported_run(exports):
-    """d(optimal effort)/d(goal) after a solve that exported its programs: the interior-point run
-    is the exported program (not traced again; its inputs are cut from differentiation), the IFT
-    step is traced, and the gradient is the one without exports (to 1e-10)."""
+    """d(optimal effort)/d(goal, mass) after a solve that exported its programs: the interior-point
+    run is the exported program, neither traced nor lowered again (its inputs are cut from
+    differentiation, and are passed to it as NumPy arrays: the solution's own params as the guess
+    and the mass made an array under grad lowered it a second time before), the IFT step is
+    traced, and the gradient is the one without exports (to 1e-10)."""
     task = lc.parallel_park(integrator=lj.RDP(), n_steps=40)
-    lc.solve(task)
+    sol = lc.solve(task)
 
-    def effort(goal):
-        return lc.solve(task.with_options(goal=goal)).cost
+    def effort(goal, m):  # as notebook 03: from the solution, at a tighter tolerance
+        return lc.solve(task.with_options(goal=goal, system=lj.Car(m=m)), sol.params, tol=1e-10).cost
 
-    with compiled_programs("trace") as traced:
-        grad = jax.grad(effort)(task.goal)
+    with compiled_programs("trace") as traced, compiled_programs() as compiled:
+        grad = jax.grad(effort, argnums=(0, 1))(task.goal, 1.0)
     assert "_run_one" not in traced and "export_run" not in traced, traced
+    assert "jit(exported_run)" not in compiled, compiled
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("LDAP_JAX_EXPORT", "0")
-        want = jax.grad(effort)(task.goal)
-    np.testing.assert_allclose(np.asarray(grad), np.asarray(want), rtol=1e-10, atol=1e-12)
+        want = jax.grad(effort, argnums=(0, 1))(task.goal, 1.0)
+    for a, b in zip(grad, want):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-10, atol=1e-12)
 
 
 def test_exports_off_inside_traces_and_without_a_cache(exports, monkeypatch):

@@ -312,7 +312,9 @@ def _load_or_export(name, key, fun, leaves, static, treedef, out_template) -> Ca
     first = [not lapack]
 
     def runner(xs):
-        xs = [x if isinstance(x, jax.Array) else np.asarray(x) for x in xs]
+        # NumPy arrays: never weakly typed, so a value made under grad (a Python number that
+        # became a weak-typed array) meets the same compiled program, not a copy compiled again
+        xs = [np.asarray(x) for x in xs]
         if first[0]:  # the call that lowers the program
             first[0] = False
             with _lock, _without_lapack_setup():
