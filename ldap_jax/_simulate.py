@@ -187,7 +187,9 @@ def simulate(
         t0: start time (s).
         save: which nodes to return: ``"all"`` (N + 1 nodes), ``"final"`` (the last node only),
             a stride ``k`` dividing N (nodes 0, k, 2k, ..., N), or a sequence of node indices.
-            Memory during the run is O(saved nodes) for the first three.
+            Memory during the run is O(saved nodes) for the first three. The saved nodes are
+            always an axis of their own (M), so ``"final"`` gives M = 1: ``traj.q[-1]`` is the node
+            (``traj.q[..., -1, :]`` under ``vmap``), the same for every ``save``.
         diagnostics: compute energy, work, momentum and constraint residual (observing every
             node, needed for the work integral and the divergence test). ``False`` observes the
             saved nodes only: the fastest positions-only run.

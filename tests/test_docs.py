@@ -186,13 +186,25 @@ def docs_report(tmp_path_factory):
     res = subprocess.run(
         [sys.executable, "-c", RUNNER, str(out), str(spec)],
         cwd=work,
-        env=dict(os.environ, MPLBACKEND="Agg"),
+        env=_docs_env(),
         capture_output=True,
         text=True,
         timeout=900 * len(documents),
     )
     report = json.loads(out.read_text()) if out.exists() else {}
     return report, res
+
+
+def _docs_env() -> dict:
+    """The child's environment: the notebooks' ``lj.enable_compilation_cache()`` uses the suite's
+    cache folder (``$LDAP_JAX_CACHE``; conftest passes it as ``JAX_COMPILATION_CACHE_DIR``), so the
+    documents share compiled and exported programs with the test workers (``lc.solve`` of the
+    same problem structure: the programs a worker exported, see ``ldap_jax/control/_export.py``)
+    instead of compiling into the user's cache."""
+    env = dict(os.environ, MPLBACKEND="Agg")
+    if env.get("JAX_COMPILATION_CACHE_DIR"):
+        env["LDAP_JAX_CACHE"] = env["JAX_COMPILATION_CACHE_DIR"]
+    return env
 
 
 def _assert_ran(name, docs_report):

@@ -18,6 +18,7 @@ from .._numerics import plain
 from .._simulate import simulate
 from .._validation import check_positive_int, check_positive_number, is_concrete
 from ..integrators import RDP, AbstractIntegrator
+from . import _export
 from ._ipm import SOLVER_RESULTS, IPMOptions, IPMState, ipm_solve
 from ._kkt import constraints, objective, rollout
 from ._parameterizations import SampledControls
@@ -117,7 +118,11 @@ def solve(
     parameters, goal, bounds, period) give the sensitivities of the optimum by the implicit
     function theorem at the solution (not by differentiating the iterations). Derivatives of a
     solve that did not converge are NaN. A batch of problems under ``jax.vmap`` runs on one
-    device; :func:`ldap_jax.shard_vmap` splits it over the devices.
+    device; :func:`ldap_jax.shard_vmap` splits it over the devices. With JAX's persistent
+    compilation cache on (:func:`ldap_jax.enable_compilation_cache`), the solver's programs are
+    also kept traced (``jax.export``, in the cache folder): a new process that solves a problem of
+    the same structure (other goal, bounds, model parameters or tolerances) neither traces nor
+    compiles them (``LDAP_JAX_EXPORT=0`` turns this off).
 
     Args:
         task: a task with per-step sampled controls (:class:`SampledControls`).
@@ -164,8 +169,32 @@ def solve(
         return dataclasses.replace(
             sol, starts=int(jax.tree_util.tree_leaves(params0)[0].shape[0]), starts_converged=n_ok
         )
-    st, violation, _ = _run(_stopped(task), _stopped(params0), options)
-    return _finish(task, st, violation)
+    return _solve_one(task, params0, options)
+
+
+def _solve_one(task: Task, params0, options: IPMOptions) -> Solution:
+    # With the persistent cache on, the run and the finish are the programs an earlier process
+    # exported (_export: no tracing). The run's inputs are cut from differentiation, so it can be
+    # the exported program under grad too; the finish (the IFT step) only at the top level.
+    args = (_stopped(task), _stopped(params0), options)
+    run = _export.call("run", _run_one, args, _run_template)
+    st, violation, _ = _run(*args) if run is NotImplemented else run
+    sol = _export.call(
+        "finish", _finish.__wrapped__, (task, st, violation), lambda: _template(params0), top_level=True
+    )
+    return _finish(task, st, violation) if sol is NotImplemented else sol
+
+
+def _run_template():
+    """A pytree of the structure :func:`_run_one` returns."""
+    z = 0
+    return IPMState(*([z] * (len(IPMState._fields) - 1)), SOLVER_RESULTS.successful), z, z
+
+
+def _template(params0) -> Solution:
+    """A :class:`Solution` of the structure :func:`_finish` returns for ``params0``."""
+    z = 0
+    return Solution(params0, z, z, z, z, z, SOLVER_RESULTS.successful, z, z, (z, z), z)
 
 
 def _checked(task, params0, tol, max_iterations, hessian, curvature_tol, barrier):

@@ -1,0 +1,356 @@
+"""Exported solver programs: a new process solves a problem structure it has solved before without
+tracing the solver again.
+
+A first ``lc.solve`` in a new process spends most of its time outside the solve itself: tracing
+the interior-point program in Python (2.4-3.7 s for ``parallel_park``), lowering it (0.6-0.9 s)
+and compiling it with XLA (tens of seconds; JAX's persistent compilation cache turns that into a
+read of about 1 s). :mod:`jax.export` keeps the traced and lowered program (StableHLO) as bytes,
+so a later process deserialises it and goes straight to XLA, which the persistent cache serves.
+
+The program is exported as a function of the task's *arrays* (goal, bounds, model parameters,
+horizon, the guess and the solver's tolerances): a task that differs only in those values uses
+the same export. Everything else is part of the key, and a program is only served for the exact
+key it was exported for:
+
+* the tree structure of the (task, guess, options) with every node's type (module and name) and
+  static data, and every static leaf (e.g. ``n_steps``, the integrator's order, ``hessian``);
+* the shape and dtype of every array;
+* the library's source (a hash of every ``.py`` file of the package), JAX's, jaxlib's and
+  equinox's versions, ``jax_enable_x64``, the backend and the library's XLA options.
+
+A structure whose description holds an object identity (a ``<function ... at 0x...>``: a
+user-written term or system method captured as static data) or a type from outside the library,
+JAX, equinox and NumPy (a class of your own: its code is not in the key) is never exported.
+
+``lc.solve`` exports two programs: the interior-point run and the finish (the optimum with its
+IFT derivative rule, the model-error estimate). Under a user's ``jit`` or ``vmap`` both are traced
+as always; under ``grad``/``jvp`` the run's inputs are cut from differentiation, so the run is
+the exported program, and the finish (whose derivative rule gives the sensitivities) is traced.
+
+The exports live in the persistent compilation cache's directory (``jax_compilation_cache_dir``,
+set by :func:`ldap_jax.enable_compilation_cache`), under ``ldap_jax_exports/``; without a cache
+directory nothing is exported. ``LDAP_JAX_EXPORT=0`` turns exports off.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import os
+import pathlib
+import re
+import tempfile
+import threading
+import warnings
+from collections.abc import Callable
+from typing import Any
+
+import equinox as eqx
+import jax
+import numpy as np
+
+__all__ = ["enabled", "export_dir", "call"]
+
+SUBDIR = "ldap_jax_exports"
+_ADDRESS = re.compile(r" at 0x[0-9a-fA-F]+")
+_lock = threading.Lock()
+_source: str | None = None
+_loaded: dict[Any, Callable | None] = {}  # in-process: key -> compiled callable (None: do not export)
+_keys: dict[Any, str | bool] = {}  # in-process: a call's structures -> its key (False: none)
+
+
+def enabled() -> bool:
+    """Whether exports are on: a persistent compilation cache directory is set and
+    ``LDAP_JAX_EXPORT`` is not ``0``."""
+    if os.environ.get("LDAP_JAX_EXPORT", "1").strip() in ("0", "false", "False"):
+        return False
+    return bool(jax.config.jax_compilation_cache_dir)
+
+
+def export_dir() -> pathlib.Path | None:
+    """The directory of the exported programs, or ``None`` without a compilation cache."""
+    root = jax.config.jax_compilation_cache_dir
+    return None if not root else pathlib.Path(root) / SUBDIR
+
+
+def _source_hash() -> str:
+    """A hash of the library's source, JAX's versions and the settings a program depends on."""
+    global _source
+    if _source is None:
+        import jaxlib
+
+        from .._compilation_cache import compiler_options
+
+        h = hashlib.sha256()
+        package = pathlib.Path(__file__).resolve().parents[1]
+        for path in sorted(package.rglob("*.py")):
+            h.update(str(path.relative_to(package)).encode())
+            h.update(path.read_bytes())
+        h.update(f"jax {jax.__version__} jaxlib {jaxlib.__version__} equinox {eqx.__version__}".encode())
+        h.update(repr(sorted((compiler_options() or {}).items())).encode())
+        _source = h.hexdigest()
+    return _source + f" x64={bool(jax.config.jax_enable_x64)} backend={jax.default_backend()}"
+
+
+#: modules whose types may appear in a key: their code is in the key (the library's source, the
+#: versions of JAX, jaxlib and equinox) or fixed (Python's built-ins, NumPy's scalar types)
+_KNOWN_MODULES = ("ldap_jax", "builtins", "equinox", "jax", "jaxlib", "numpy")
+
+
+def _known(kind: type) -> bool:
+    module = getattr(kind, "__module__", None) or ""
+    return module.split(".")[0] in _KNOWN_MODULES
+
+
+def _describe(treedef, strict: bool = True) -> str | None:
+    """The tree structure with every node's type by module and name and its static data, or
+    ``None`` (``strict``) if a node's type comes from code outside the key (e.g. a class of your
+    own: its methods may change between processes while its name stays)."""
+    data = treedef.node_data()
+    if data is None:  # a leaf
+        return "*"
+    kind, aux = data
+    if strict and not _known(kind):
+        return None
+    children = [_describe(c, strict) for c in treedef.children()]
+    if None in children:
+        return None
+    return f"{kind.__module__}.{kind.__qualname__}[{aux!r}]({','.join(children)})"
+
+
+def _signature(name: str, args: tuple) -> tuple[str, list, Any, Any] | None:
+    """``(key, array leaves, static part, array treedef)`` of a call of program ``name`` on
+    ``args``, or ``None`` if the structure cannot be keyed across processes."""
+    arrays, static = eqx.partition(args, eqx.is_array)
+    leaves, treedef = jax.tree_util.tree_flatten(arrays)
+    static_leaves, static_def = jax.tree_util.tree_flatten(static)
+    # a repeat call: the key by the tree structures' own equality (3 ms -> well under 1 ms a call)
+    try:
+        fast = (
+            name,
+            treedef,
+            static_def,
+            tuple((type(x), x) for x in static_leaves),
+            tuple((x.shape, x.dtype) for x in leaves),
+            bool(jax.config.jax_enable_x64),
+        )
+        key = _keys.get(fast)
+    except TypeError:  # unhashable static data
+        fast = key = None
+    if key is None:
+        key = _key(name, leaves, treedef, static_leaves, static_def)
+        if fast is not None:
+            if len(_keys) > 10_000:  # pragma: no cover - bound the bookkeeping
+                _keys.clear()
+            _keys[fast] = key
+    return None if key is False else (key, leaves, static, treedef)
+
+
+def _key(name, leaves, treedef, static_leaves, static_def) -> str | bool:
+    """The key of a program (see the module's docstring), or ``False`` for none."""
+    described = _describe(treedef), _describe(static_def)
+    if None in described or not all(_known(type(x)) for x in static_leaves):
+        return False
+    text = "\n".join(
+        [
+            name,
+            *described,
+            repr(static_leaves),
+            repr([(tuple(x.shape), str(x.dtype)) for x in leaves]),
+            _source_hash(),
+        ]
+    )
+    if _ADDRESS.search(text):
+        return False
+    return hashlib.sha256(text.encode()).hexdigest()[:32]
+
+
+def _paths(key: str) -> tuple[pathlib.Path, pathlib.Path]:
+    folder = export_dir()
+    return folder / f"{key}.jaxexport", folder / f"{key}.json"
+
+
+def _write(path: pathlib.Path, data: bytes) -> None:
+    """Write atomically (a concurrent reader sees the old file or the whole new one)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.chmod(tmp, 0o644)  # as the cache's own files (mkstemp makes them private)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _compiled(exported, name: str) -> Callable:
+    from .._compilation_cache import compiler_options
+
+    def call(*xs):
+        return exported.call(*xs)
+
+    call.__name__ = call.__qualname__ = f"exported_{name}"
+    options = compiler_options()
+    kwargs = {} if options is None else {"compiler_options": options}
+    return jax.jit(call, **kwargs)
+
+
+def call(
+    name: str, fun: Callable, args: tuple, out_template: Callable[[], Any], *, top_level: bool = False
+) -> Any:
+    """``fun(*args)`` through an exported program, or ``NotImplemented`` if this call cannot use
+    one (exports off, a traced argument, a call under a trace that stages code out, a structure
+    without a key, an export that fails).
+
+    Args:
+        name: the program's name (part of the key).
+        fun: the function to run; traced only when no export exists for the key yet.
+        args: its arguments (a tuple of pytrees); array leaves become the program's arguments,
+            the rest is static (baked into the program and part of the key).
+        out_template: builds a pytree with the structure of ``fun``'s output (any leaves): the
+            output is rebuilt in it, after a check that it matches the structure recorded at
+            export.
+        top_level: only outside every JAX trace. Otherwise also on concrete arguments under
+            ``grad``/``jvp`` or a ``vmap`` they are not batched over (the program then runs on
+            them as it is, outside those traces, like the library's :func:`~ldap_jax.jit`).
+    """
+    if not enabled():
+        return NotImplemented
+    from .._compilation_cache import _runs_at_top_level, _traced, in_trace
+
+    inside = in_trace()
+    if inside and (top_level or _traced(args) or not _runs_at_top_level(args, False)):
+        return NotImplemented
+    if inside and not _can_leave_traces():  # pragma: no cover - a future JAX
+        return NotImplemented
+    signature = _signature(name, args)
+    if signature is None:
+        return NotImplemented
+    key, leaves, static, treedef = signature
+    with _lock:
+        runner = _loaded.get(key, NotImplemented)
+        if runner is NotImplemented:
+            with _outside_traces(inside):
+                runner = _load_or_export(name, key, fun, leaves, static, treedef, out_template)
+            _loaded[key] = runner
+    if runner is None:
+        return NotImplemented
+    with _outside_traces(inside):
+        return runner(leaves)
+
+
+def _can_leave_traces() -> bool:
+    try:
+        from jax._src import core
+
+        return hasattr(core, "set_current_trace") and hasattr(core, "eval_trace")
+    except ImportError:  # pragma: no cover
+        return False
+
+
+def _outside_traces(inside: bool):
+    """A context that runs under JAX's evaluation trace (values in, values out)."""
+    if not inside:
+        return contextlib.nullcontext()
+    from jax._src import core
+
+    return core.set_current_trace(core.eval_trace)
+
+
+def _out_structure(out_template: Callable[[], Any]):
+    return jax.tree_util.tree_structure(out_template())
+
+
+def _load_or_export(name, key, fun, leaves, static, treedef, out_template) -> Callable | None:
+    from jax import export as jex
+
+    program_path, meta_path = _paths(key)
+    out_def = _out_structure(out_template)
+    exported, lapack = None, True
+    if program_path.exists() and meta_path.exists():
+        try:
+            meta = json.loads(meta_path.read_text())
+            candidate = jex.deserialize(bytearray(program_path.read_bytes()))
+            if (
+                meta.get("out") == _describe(out_def, strict=False)
+                and candidate.out_tree.num_leaves == out_def.num_leaves
+            ):
+                exported, lapack = candidate, meta.get("lapack", True) is not False
+        except Exception:  # a damaged or foreign file: export again
+            exported = None
+    if exported is None:
+        traced_out = []
+
+        def flat(*xs):
+            arrays = jax.tree_util.tree_unflatten(treedef, xs)
+            out = fun(*eqx.combine(arrays, static))
+            traced_out.append(jax.tree_util.tree_structure(out))
+            return tuple(jax.tree_util.tree_leaves(out))
+
+        flat.__name__ = flat.__qualname__ = f"export_{name}"
+
+        try:
+            avals = [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in leaves]
+            exported = jex.export(jax.jit(flat))(*avals)
+            if traced_out[-1] != out_def:  # the template does not describe the output
+                return None
+            lapack = "lapack" in exported.mlir_module()  # a LAPACK call (none in the solver's)
+            _write(program_path, bytes(exported.serialize()))
+            meta = {"out": _describe(out_def, strict=False), "lapack": lapack}
+            _write(meta_path, json.dumps(meta).encode())
+        except Exception as err:  # e.g. a host callback: not exportable, trace as usual
+            warnings.warn(
+                f"lc.solve could not export its program ({type(err).__name__}: {err}); it is traced "
+                "in every new process (LDAP_JAX_EXPORT=0 turns exports off)",
+                stacklevel=4,
+            )
+            return None
+    compiled = _compiled(exported, name)
+    first = [not lapack]
+
+    def runner(xs):
+        # NumPy arrays: never weakly typed, so a value made under grad (a Python number that
+        # became a weak-typed array) meets the same compiled program, not a copy compiled again
+        xs = [np.asarray(x) for x in xs]
+        if first[0]:  # the call that lowers the program
+            first[0] = False
+            with _lock, _without_lapack_setup():
+                outs = compiled(*xs)
+        else:
+            outs = compiled(*xs)
+        return jax.tree_util.tree_unflatten(out_def, outs)
+
+    return runner
+
+
+@contextlib.contextmanager
+def _without_lapack_setup():
+    """Lower an exported program without JAX's set-up of LAPACK on the CPU, in this thread.
+
+    Lowering any exported program for the CPU first sets up jaxlib's LAPACK kernels, which imports
+    SciPy's LAPACK (``scipy.linalg``): 0.4-1.4 s of a warm first solve of 1-3 s, measured. The
+    solver's programs hold no LAPACK call (checked at export: ``"lapack"`` in the module's text),
+    so theirs is skipped; a program with one is lowered as JAX does. Other threads are unaffected.
+    """
+    try:
+        from jax._src.export import _export as internal
+
+        original = internal._ensure_backends_initialized
+    except (ImportError, AttributeError):  # pragma: no cover - a future JAX: as JAX does
+        yield
+        return
+    thread = threading.get_ident()
+
+    def ensure(platforms):
+        if threading.get_ident() != thread:
+            return original(platforms)
+        return None
+
+    internal._ensure_backends_initialized = ensure
+    try:
+        yield
+    finally:
+        internal._ensure_backends_initialized = original

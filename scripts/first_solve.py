@@ -1,0 +1,149 @@
+"""Where the first ``lc.solve(lc.parallel_park())`` of a new process spends its time.
+
+    python scripts/first_solve.py                 # cold, then warm, each in a new process
+    python scripts/first_solve.py --runs 3        # three warm processes
+    python scripts/first_solve.py --cache DIR --runs 0   # one process on the cache DIR
+    python scripts/first_solve.py --no-export     # the compilation cache only (no exported programs)
+
+Each measurement is a new Python process (``--child``) that imports the library, turns on the
+persistent compilation cache in a directory of this script's own (a fresh temporary one, so the
+first process is cold and the later ones warm; ``--cache DIR`` to keep it) and times:
+
+* ``import``: ``import ldap_jax`` and ``ldap_jax.control``;
+* ``first``: the first ``lc.solve(lc.parallel_park())`` (everything: the task's construction,
+  tracing, lowering, XLA compilation or cache reads, the run), and of it the task's construction;
+* ``second``: a second solve of the same task in the same process (the repeat time);
+* per program: JAX's own monitoring events (``jax.monitoring``): Python tracing to a jaxpr,
+  lowering to StableHLO, XLA compilation, persistent-cache reads, summed per program name.
+
+With ``--no-export`` the child sets ``LDAP_JAX_EXPORT=0`` (``lc.solve`` then never uses an
+exported program). Prints a table; ``--json FILE`` writes the numbers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+
+EVENTS = {
+    "/jax/core/compile/jaxpr_trace_duration": "trace",
+    "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower",
+    "/jax/core/compile/backend_compile_duration": "compile",
+    "/jax/compilation_cache/cache_retrieval_time_sec": "cache read",
+}
+
+
+def child(cache: str) -> dict:
+    """One new process's measurement (printed as JSON on the last line of stdout)."""
+    t0 = time.perf_counter()
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import ldap_jax as lj
+    from ldap_jax import control as lc
+
+    t_import = time.perf_counter() - t0
+    lj.enable_compilation_cache(cache)
+
+    per_program: dict = collections.defaultdict(lambda: collections.defaultdict(float))
+
+    def listener(event, duration, **kwargs):
+        kind = EVENTS.get(event)
+        if kind is not None:
+            name = kwargs.get("fun_name") or "?"
+            per_program[name][kind] += duration
+
+    jax.monitoring.register_event_duration_secs_listener(listener)
+
+    t1 = time.perf_counter()
+    task = lc.parallel_park()
+    t_task = time.perf_counter() - t1
+    sol = lc.solve(task)
+    jax.block_until_ready(sol)
+    t_first = time.perf_counter() - t1
+    first_programs = {k: dict(v) for k, v in per_program.items()}
+
+    t2 = time.perf_counter()
+    sol2 = lc.solve(lc.parallel_park())
+    jax.block_until_ready(sol2)
+    t_second = time.perf_counter() - t2
+    return {
+        "import": t_import,
+        "first": t_first,
+        "task": t_task,
+        "second": t_second,
+        "converged": bool(sol.converged),
+        "iterations": int(sol.iterations),
+        "cost": float(sol.cost),
+        "programs": first_programs,
+    }
+
+
+def run_child(cache: str, export: bool) -> dict:
+    env = dict(os.environ)
+    if not export:
+        env["LDAP_JAX_EXPORT"] = "0"
+    t0 = time.perf_counter()
+    out = subprocess.run(
+        [sys.executable, __file__, "--child", "--cache", cache],
+        env=env,
+        check=True,
+        capture_output=True,
+        text=True,
+    )
+    result = json.loads(out.stdout.strip().splitlines()[-1])
+    result["process"] = time.perf_counter() - t0
+    return result
+
+
+def report(label: str, r: dict, top: int) -> None:
+    print(
+        f"{label}: process {r['process']:.2f} s, import {r['import']:.2f} s, first solve {r['first']:.2f} s, "
+        f"second {r['second']:.3f} s (converged {r['converged']}, {r['iterations']} iterations, "
+        f"cost {r['cost']:.10g})"
+    )
+    totals = collections.Counter()
+    rows = []
+    for name, kinds in r["programs"].items():
+        rows.append((sum(kinds.values()), name, kinds))
+        totals.update(kinds)
+    print("  sum over programs: " + ", ".join(f"{k} {v:.2f} s" for k, v in sorted(totals.items())))
+    print(f"  {len(rows)} programs; the {top} largest:")
+    for total, name, kinds in sorted(rows, reverse=True)[:top]:
+        parts = ", ".join(f"{k} {v:.2f}" for k, v in sorted(kinds.items()))
+        print(f"    {total:6.2f} s  {name[:60]:60s} {parts}")
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--cache", default=None, help="compilation cache directory (default: a new temporary one)")
+    p.add_argument("--runs", type=int, default=1, help="processes after the first one")
+    p.add_argument("--no-export", action="store_true", help="do not use exported solver programs")
+    p.add_argument("--top", type=int, default=8, help="programs listed per process")
+    p.add_argument("--json", default=None, help="write the measurements to this file")
+    args = p.parse_args()
+    if args.child:
+        print(json.dumps(child(args.cache)))
+        return
+    with tempfile.TemporaryDirectory(prefix="ldap_jax_first_solve_") as tmp:
+        cache = args.cache or tmp
+        results = {}
+        for i in range(args.runs + 1):
+            cold = not os.path.isdir(cache) or not os.listdir(cache)
+            label = "cold" if cold else f"warm {i}"
+            results[label] = r = run_child(cache, not args.no_export)
+            report(label, r, args.top)
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(results, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,174 @@
+"""``lc.solve``'s exported programs (``ldap_jax/control/_export.py``): a program exported by one
+call and read back from disk gives the solution of the traced program; a structure other than
+the exported one is never served it."""
+
+import json
+import os
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import compiled_programs
+
+import ldap_jax as lj
+from ldap_jax import control as lc
+from ldap_jax.control import _export, _solve
+
+
+@pytest.fixture
+def exports(tmp_path, monkeypatch):
+    """Exports on, in an empty folder of their own, with nothing loaded in this process."""
+    monkeypatch.setenv("LDAP_JAX_EXPORT", "1")
+    if not jax.config.jax_compilation_cache_dir:  # the suite's conftest sets one
+        pytest.skip("no persistent compilation cache directory")
+    monkeypatch.setattr(_export, "export_dir", lambda: tmp_path)
+    monkeypatch.setattr(_export, "_loaded", {})
+    return tmp_path
+
+
+def _traced(task, params0=None, **kwargs):
+    """The solve without exports (the traced program)."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("LDAP_JAX_EXPORT", "0")
+        return lc.solve(task, params0, **kwargs)
+
+
+def _key(task, params0=None, **kwargs):
+    options, params0, _ = _solve._checked(task, params0, 1e-8, 1000, "base", 0.1, None)
+    signature = _export._signature("solve", (_solve._solver_view(task), params0, options))
+    return None if signature is None else signature[0]
+
+
+def _assert_same(a: lc.Solution, b: lc.Solution):
+    assert jax.tree_util.tree_structure(a) == jax.tree_util.tree_structure(b)
+    assert lc.SOLVER_RESULTS[a.result] == lc.SOLVER_RESULTS[b.result]
+    assert int(a.iterations) == int(b.iterations)
+    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-12, atol=1e-12)
+
+
+def test_reloaded_export_gives_the_traced_solution(exports):
+    """parallel_park (N = 40, RDP order 2): the first call exports the program to disk; a process
+    that has loaded nothing (the in-process table cleared) reads it back without tracing the solver,
+    and both give the traced program's solution (every leaf to 1e-12, the same iterations)."""
+    task = lc.parallel_park(integrator=lj.RDP(), n_steps=40)
+    reference = _traced(task)
+    first = lc.solve(task)
+    files = sorted(p.suffix for p in exports.iterdir())
+    assert files == [".jaxexport", ".jaxexport", ".json", ".json"], files  # the run and the finish
+    _export._loaded.clear()
+    with compiled_programs("trace") as traced:
+        again = lc.solve(task)
+    assert not {"export_run", "export_finish", "_run_one", "_finish"} & set(traced), traced
+    assert bool(reference.converged)
+    _assert_same(first, reference)
+    _assert_same(again, reference)
+
+
+def test_values_are_arguments_and_structures_are_keys(exports):
+    """A new goal, mass or tolerance is an argument of the same export (same key, and the solution
+    of the traced program for those values); a new number of steps, integrator order, retraction
+    or Hessian option is another key; a structure holding a function or a class of the user's is
+    not exported."""
+    task = lc.parallel_park(integrator=lj.RDP(), n_steps=40)
+    key = _key(task)
+    moved = task.with_options(goal=jnp.array([0.1, 0.55, 0.05]), system=lj.Car(m=1.3))
+    assert _key(moved) == key
+    assert _key(task, tol=1e-10) == key
+    assert _key(task.with_options(n_steps=41)) not in (None, key)
+    assert _key(task.with_options(integrator=lj.RDP(order=4))) not in (None, key)
+    assert _key(task.with_options(integrator=lj.RDP(retraction="cayley"))) not in (None, key)
+    options, params0, _ = _solve._checked(task, None, 1e-8, 1000, "exact", 0.1, None)
+    exact = _export._signature("solve", (_solve._solver_view(task), params0, options))[0]
+    assert exact != key
+    assert _export._signature("solve", (task, lambda x: x)) is None
+
+    class MyCar(lj.Car):  # code outside the key: never exported
+        pass
+
+    assert _export._signature("solve", (task.with_options(system=MyCar()),)) is None
+    # the export serves another goal and mass with their own solution
+    lc.solve(task)
+    _assert_same(lc.solve(moved), _traced(moved))
+    assert len(list(exports.glob("*.jaxexport"))) == 2
+
+
+def test_gradients_use_the_exported_run(exports):
+    """d(optimal effort)/d(goal, mass) after a solve that exported its programs: the interior-point
+    run is the exported program, neither traced nor lowered again (its inputs are cut from
+    differentiation, and are passed to it as NumPy arrays: the solution's own params as the guess
+    and the mass made an array under grad lowered it a second time before), the IFT step is
+    traced, and the gradient is the one without exports (to 1e-10)."""
+    task = lc.parallel_park(integrator=lj.RDP(), n_steps=40)
+    sol = lc.solve(task)
+
+    def effort(goal, m):  # as notebook 03: from the solution, at a tighter tolerance
+        return lc.solve(task.with_options(goal=goal, system=lj.Car(m=m)), sol.params, tol=1e-10).cost
+
+    with compiled_programs("trace") as traced, compiled_programs() as compiled:
+        grad = jax.grad(effort, argnums=(0, 1))(task.goal, 1.0)
+    assert "_run_one" not in traced and "export_run" not in traced, traced
+    assert "jit(exported_run)" not in compiled, compiled
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("LDAP_JAX_EXPORT", "0")
+        want = jax.grad(effort, argnums=(0, 1))(task.goal, 1.0)
+    for a, b in zip(grad, want):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-10, atol=1e-12)
+
+
+def test_exports_off_inside_traces_and_without_a_cache(exports, monkeypatch):
+    """Under a user's jit the solver is traced as written (no export is read or written); with
+    LDAP_JAX_EXPORT=0 or no cache directory, call declines."""
+    task = lc.parallel_park(integrator=lj.RDP(), n_steps=40)
+    cost = jax.jit(lambda g: lc.solve(task.with_options(goal=g)).cost)(task.goal)
+    assert not list(exports.iterdir())
+    np.testing.assert_allclose(float(cost), float(_traced(task).cost), rtol=1e-12)
+    monkeypatch.setenv("LDAP_JAX_EXPORT", "0")
+    assert not _export.enabled()
+    assert _export.call("solve", None, (task,), lambda: None) is NotImplemented
+
+
+NEW_PROCESS = """
+import json, sys
+import jax
+jax.config.update("jax_enable_x64", True)
+import numpy as np
+import ldap_jax as lj
+from ldap_jax import control as lc
+lj.enable_compilation_cache(sys.argv[1])
+traced = []
+def listen(event, duration, **kwargs):
+    if event == "/jax/core/compile/jaxpr_trace_duration":
+        traced.append(kwargs.get("fun_name"))
+jax.monitoring.register_event_duration_secs_listener(listen)
+sol = lc.solve(lc.parallel_park(integrator=lj.RDP(), n_steps=40))
+print(json.dumps({"params": np.asarray(sol.params).tolist(), "iterations": int(sol.iterations),
+                  "traced": traced, "scipy": "scipy.linalg" in sys.modules}))
+"""
+
+
+def test_a_new_process_solves_from_the_export(tmp_path):
+    """Two new processes on one cache folder (the suite's, so that the XLA programs are compiled
+    once across runs): the second traces neither the run nor the finish, imports no SciPy (JAX's
+    LAPACK set-up is skipped for programs without LAPACK calls), and both give this process's
+    traced solution to 1e-12."""
+    cache = os.environ.get("JAX_COMPILATION_CACHE_DIR") or str(tmp_path)
+    env = dict(os.environ, LDAP_JAX_EXPORT="1")
+    runs = []
+    for _ in range(2):
+        res = subprocess.run(
+            [sys.executable, "-c", NEW_PROCESS, cache], capture_output=True, text=True, env=env, timeout=900
+        )
+        assert res.returncode == 0, res.stderr[-3000:]
+        runs.append(json.loads(res.stdout.strip().splitlines()[-1]))
+    second = runs[1]
+    names = {"export_run", "export_finish", "_run_one", "_finish"}
+    assert not names & set(second["traced"]), second["traced"]
+    assert not second["scipy"]
+    want = _traced(lc.parallel_park(integrator=lj.RDP(), n_steps=40))
+    for run in runs:
+        assert run["iterations"] == int(want.iterations)
+        np.testing.assert_allclose(np.asarray(run["params"]), np.asarray(want.params), rtol=1e-12, atol=1e-12)
