@@ -25,7 +25,7 @@ import numpy as np
 from jaxtyping import Array
 
 from . import _tracing
-from ._numerics import SAVED, materialise, saved
+from ._numerics import SAVED, materialise_result, saved
 from ._results import RESULTS, first_failure
 from .integrators import AbstractIntegrator
 from .systems import AbstractSystem, Observation
@@ -322,9 +322,11 @@ def rollout(
                         (step_result == RESULTS.successful) & (balance > bound), RESULTS.diverged, step_result
                     )
             obs = obs_new
+        if observe and diagnostics:
+            # computed once: XLA would otherwise fuse the node's diagnostics into every consumer
+            # of the failure mask (the integrator's step gives its own code computed once)
+            step_result = materialise_result(step_result)
         result, index, keep = first_failure(carry.result, carry.failure_index, step_result, k)
-        # computed once: XLA would otherwise fuse the whole step into every consumer of the mask
-        (keep,) = materialise(keep)
         if checkpoint is False:
             (keep,) = saved(keep)
         new = _Carry(
