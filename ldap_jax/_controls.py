@@ -16,7 +16,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from ._fields import converter_field
-from ._numerics import materialise, sincos
+from ._numerics import sincos
 from ._typing import ArrayLike
 
 __all__ = ["AbstractControls", "Sinusoids", "Sampled", "Constant"]
@@ -155,16 +155,29 @@ class Sinusoids(AbstractControls):
         against 3.2e6 at best on arrays)."""
         n_ch, n_terms = self.amplitude.shape[-2:]
         ds, dc = sincos(self.frequency[None] * (h * fractions)[:, None, None])  # (S, channels, terms)
+        # every coefficient a scalar of its own, taken apart here, before the rollout's loop: under
+        # vmap each is one contiguous vector (sliced inside the loop from the (B, channels, terms)
+        # arrays, they were strided loads: 4 of the 6 sincos of a snakeboard step cost 10x the
+        # kernel's own), and sin and cos finished in one kernel each (``whole``)
+        terms = [
+            [
+                (self.amplitude[i, j], self.frequency[i, j], self.phase[i, j], ds[:, i, j], dc[:, i, j])
+                for j in range(n_terms)
+            ]
+            for i in range(n_ch)
+        ]
 
         def sample(t):
+            if not n_ch:
+                return jnp.zeros((fractions.shape[0], 0), t.dtype)
             columns = []
             for i in range(n_ch):
                 col = 0.0
-                for j in range(n_terms):
-                    s, c = materialise(*sincos(self.frequency[i, j] * t + self.phase[i, j]))
-                    col = col + self.amplitude[i, j] * (s * dc[:, i, j] + c * ds[:, i, j])
+                for a, w, p, dsv, dcv in terms[i]:
+                    s, c = sincos(w * t + p, whole=True)
+                    col = col + a * (s * dcv + c * dsv)
                 columns.append(col)
-            return jnp.stack(columns, axis=-1) if columns else jnp.zeros((fractions.shape[0], 0), t.dtype)
+            return jnp.stack(columns, axis=-1)
 
         return sample
 

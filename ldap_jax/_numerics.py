@@ -3,6 +3,9 @@ tags that decide what reverse mode keeps from a forward pass."""
 
 from __future__ import annotations
 
+from typing import Any
+
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -59,7 +62,7 @@ _PIO2 = {
 }
 
 
-def _sincos_impl(x: Array) -> tuple[Array, Array]:
+def _sincos_impl(x: Array, whole: bool) -> tuple[Array, Array]:
     dtype = np.dtype(x.dtype)
     if dtype not in _PIO2:  # float16 / bfloat16: no hand-written kernel, use XLA's
         return jnp.sin(x), jnp.cos(x)
@@ -73,46 +76,67 @@ def _sincos_impl(x: Array) -> tuple[Array, Array]:
     pc = jnp.asarray(_C[5], dtype)
     for coef in _C[4::-1]:
         pc = pc * z + jnp.asarray(coef, dtype)
-    # A division by a runtime 1 (x * 0 is not folded for floats) marks each kernel value
-    # "expensive" for XLA's fusion pass: ``s`` and ``c`` (one polynomial each) are then
-    # materialised once, and only the cheap quadrant selects below fuse into the consumers.
-    # (Without it XLA duplicated the polynomials into every consumer fusion, about five times
-    # per step; with the selects before the division, each of sin and cos needed both.)
+    # A division by a runtime 1 (x * 0 is not folded for floats) marks a value "expensive" for
+    # XLA's fusion pass, which then computes it once instead of fusing it into every consumer.
+    # Either the two polynomials are marked (``whole=False``: one polynomial per kernel, the cheap
+    # quadrant selects fused into the consumers; without a mark XLA duplicated the polynomials into
+    # every consumer fusion, about five times per step), or the final values (``whole=True``:
+    # each of sin and cos one kernel with both polynomials and the selects, which nothing
+    # downstream recomputes: the controls' sampler, whose consumers redid the argument reduction
+    # for every quadrant select).
     one = x * 0 + 1
-    s = (r + r * z * ps) / one
-    c = ((1.0 - 0.5 * z) + z * z * pc) / one
+    s = r + r * z * ps
+    c = (1.0 - 0.5 * z) + z * z * pc
+    if not whole:
+        s, c = s / one, c / one
     q = n.astype(jnp.int32) & 3
     swap = (q & 1) == 1
     sin = jnp.where(swap, c, s)
     cos = jnp.where(swap, s, c)
     sin = jnp.where(q >= 2, -sin, sin)
     cos = jnp.where((q == 1) | (q == 2), -cos, cos)
+    if whole:
+        sin, cos = sin / one, cos / one
     return sin, cos
 
 
-def sincos(x: Array) -> tuple[Array, Array]:
-    """``(sin x, cos x)``: :func:`sincos_poly` in rollouts, XLA's own inside :func:`plain`."""
+def sincos(x: Array, *, whole: bool = False) -> tuple[Array, Array]:
+    """``(sin x, cos x)``: :func:`sincos_poly` in rollouts, XLA's own inside :func:`plain`.
+    ``whole``: where XLA's fusion pass cuts the kernel (see :func:`sincos_poly`)."""
     if _PLAIN[-1]:
         return jnp.sin(x), jnp.cos(x)
-    return sincos_poly(x)
+    return (sincos_whole if whole else sincos_poly)(x)
 
 
+def _exact_jvp(f):
+    @f.defjvp
+    def _jvp(primals, tangents):
+        (x,), (dx,) = primals, tangents
+        s, c = f(x)
+        return (s, c), (c * dx, -s * dx)
+
+    return f
+
+
+@_exact_jvp
 @jax.custom_jvp
 def sincos_poly(x: Array) -> tuple[Array, Array]:
     """``(sin x, cos x)`` sharing one argument reduction, branch-free so XLA vectorises it.
 
     Accurate to about one ulp for ``|x| < 1.6e6`` (float64) or ``|x| < 6e3`` (float32): the
     Cody-Waite split of ``pi/2`` is exact for those quotients; beyond, accuracy degrades.
-    Derivatives are the exact ``(cos x, -sin x)`` (a custom JVP, not the polynomial's).
+    Derivatives are the exact ``(cos x, -sin x)`` (a custom JVP, not the polynomial's). XLA
+    computes each polynomial once and fuses the quadrant selects into the consumers.
     """
-    return _sincos_impl(x)
+    return _sincos_impl(x, whole=False)
 
 
-@sincos_poly.defjvp
-def _sincos_jvp(primals, tangents):
-    (x,), (dx,) = primals, tangents
-    s, c = sincos_poly(x)
-    return (s, c), (c * dx, -s * dx)
+@_exact_jvp
+@jax.custom_jvp
+def sincos_whole(x: Array) -> tuple[Array, Array]:
+    """:func:`sincos_poly` with XLA's fusion cut after the quadrant selects: sin and cos each one
+    kernel (both polynomials in each), their consumers read finished values. The same values."""
+    return _sincos_impl(x, whole=True)
 
 
 #: Name of the values reverse mode keeps from the forward pass of a rollout (the default
@@ -136,3 +160,19 @@ def materialise(*values: Array) -> tuple[Array, ...]:
     if _PLAIN[-1]:
         return values
     return jax.lax.optimization_barrier(values)
+
+
+def materialise_result(result: Any) -> Any:
+    """A result code (an ``eqx.Enumeration`` item) that XLA computes once.
+
+    The barrier of :func:`materialise` does not survive XLA's CPU pipeline; a division by a
+    runtime 1 (an "expensive" operation, which the fusion pass does not duplicate) does. Without
+    it, the code of a step (finite state? singular?) was fused into every consumer of the failure
+    mask: each field of the next state recomputed the whole step (15 copies for the snakeboard's
+    order-2 step, 2.9x the time of the same loop in C under a plain ``jax.jit``)."""
+    if _PLAIN[-1]:
+        return result
+    code = result._value
+    f = code.astype(jnp.float32)
+    f = f / (jax.lax.stop_gradient(f) * 0 + 1)
+    return eqx.tree_at(lambda r: r._value, result, f.astype(code.dtype))

@@ -25,7 +25,7 @@ import numpy as np
 from jaxtyping import Array
 
 from . import _tracing
-from ._numerics import SAVED, materialise, saved
+from ._numerics import SAVED, materialise_result, saved
 from ._results import RESULTS, first_failure
 from .integrators import AbstractIntegrator
 from .systems import AbstractSystem, Observation
@@ -322,14 +322,23 @@ def rollout(
                         (step_result == RESULTS.successful) & (balance > bound), RESULTS.diverged, step_result
                     )
             obs = obs_new
+        if observe and diagnostics:
+            # computed once: XLA would otherwise fuse the node's diagnostics into every consumer
+            # of the failure mask (the integrator's step gives its own code computed once)
+            step_result = materialise_result(step_result)
         result, index, keep = first_failure(carry.result, carry.failure_index, step_result, k)
-        # computed once: XLA would otherwise fuse the whole step into every consumer of the mask
-        (keep,) = materialise(keep)
         if checkpoint is False:
             (keep,) = saved(keep)
+        if light and observe:
+            # node k + 1 is emitted as it is (NaN after a failure, as every later node); the
+            # carry keeps its power alone, for the work's trapezoid (not 14 values per step)
+            obs_carry = carry.obs._replace(power=jnp.where(keep, obs.power, carry.obs.power))
+            emitted = obs
+        else:
+            obs_carry = emitted = _where(keep, obs, carry.obs)
         new = _Carry(
             state=_where(keep, new_state, carry.state),
-            obs=_where(keep, obs, carry.obs),
+            obs=obs_carry,
             work=jnp.where(keep, work, carry.work),
             abs_work=jnp.where(keep, abs_work, carry.abs_work),
             impulse=jnp.where(keep, impulse, carry.impulse),
@@ -339,11 +348,12 @@ def rollout(
             result=result,
             failure_index=index,
         )
-        return new
+        return new, emitted
 
-    def emit(carry: _Carry):
-        # the nodes after a failure hold the frozen state here; _assemble makes them NaN
-        out = (carry.obs, carry.work, carry.residual, carry.converged, carry.iterations)
+    def emit(carry: _Carry, obs: Observation):
+        # the nodes after a failure hold the frozen state (or the discarded one) here; _assemble
+        # makes them NaN
+        out = (obs, carry.work, carry.residual, carry.converged, carry.iterations)
         return carry._replace(
             residual=zero, converged=jnp.ones((), bool), iterations=jnp.zeros((), jnp.int32)
         ), out
@@ -351,13 +361,16 @@ def rollout(
     stride = plan.stride
     n_seg = n_steps // stride
     observe_inner = diagnostics or policy
+    # every node emitted as it is observed, and the carry holds no observation but the power (a
+    # policy reads the node's state at the next step, and a segment emits its carried last node)
+    light = stride == 1 and not policy
 
     def inner_body(carry, k):
-        return step(carry, k, observe_inner), None
+        return step(carry, k, observe_inner)[0], None
 
     def segment(carry, j):
         if stride == 1:
-            return emit(step(carry, j, True))
+            return emit(*step(carry, j, True))
         # every step of the segment in one scan body: the step is in the program once, as with
         # save="all" (a last step outside the scan was a second copy that XLA compiled again:
         # final-node and strided programs compiled 1.2-1.7x as long, their gradients too)
@@ -367,7 +380,7 @@ def rollout(
         if not observe_inner:  # the inner steps observed nothing: observe the segment's last node
             c_last = node_controls(last + 1, sample(last, carry.obs))
             carry = carry._replace(obs=_tracing.observe(integrator, system, carry.state, c_last))
-        return emit(carry)
+        return emit(carry, carry.obs)
 
     carry0 = _Carry(
         state=state0,
@@ -398,17 +411,23 @@ def rollout(
 def _mobility(system: AbstractSystem, q0: Array) -> Array | None:
     """``A`` with ``1/2 P^T A P`` the kinetic energy an impulse ``P`` of the shape forces gives the
     system at rest at ``q0`` (the constrained inverse mass matrix on the shape coordinates), or
-    ``None`` for a description without a full view (the test then scales by the absolute work)."""
+    ``None`` for a description without a full view (the test then scales by the absolute work).
+
+    ``A = d u / d P`` of the shape velocity whose momenta are ``(pu, mu) = (P, 0)``
+    (:meth:`~ldap_jax.systems.AbstractSystem.velocity_from_momenta`: at rest, the impulse's
+    response is the force's, ``full_acceleration``, to round-off, at a fraction of its cost: no
+    Hessian of the Lagrangian, no KKT solve per maneuver)."""
     n_s = system.n_shape
     zero = jnp.zeros(n_s, q0.dtype)
+    try:  # a System description without a full view (no constraints given) has no such scale
+        jax.eval_shape(lambda q: system.full_acceleration(q, jnp.zeros_like(q), zero, zero), q0)
+    except ValueError:
+        return None
 
     def response(p):
-        return system.full_acceleration(q0, jnp.zeros_like(q0), p, zero)[0][3:]
+        return system.velocity_from_momenta(q0[3:], p, jnp.zeros(3, q0.dtype), zero)[0]
 
-    try:
-        return jax.jacfwd(response)(zero)
-    except ValueError:  # a System description without a full view (no constraints given)
-        return None
+    return jax.jacfwd(response)(zero)
 
 
 def _impulse(prev: Array, f: Array, h: Array) -> Array:
@@ -435,7 +454,7 @@ def _chunked(step, emit, carry0, n_steps, checkpoint, plan, t0, h, obs0, sink):
 
     def masked(carry, inp):
         kk, ok = inp
-        new, out = emit(step(carry, kk, True))
+        new, out = emit(*step(carry, kk, True))
         return _where(ok, new, carry), out
 
     @jax.checkpoint

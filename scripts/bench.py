@@ -395,6 +395,44 @@ def ours_over_c(cfg: Config, log) -> list[dict]:
     return rows
 
 
+def default_call(cfg: Config, log) -> list[dict]:
+    """The default call against the positions-only rollout (snakeboard, RDP order 2, B x N, one
+    device, a plain ``jax.jit(jax.vmap(...))``), in alternating rounds: ``lj.simulate`` with its
+    defaults (every node, every diagnostic) returning the whole :class:`~ldap_jax.Trajectory`, the
+    same call read as a user writes it (``.q[-1]``: XLA drops what is not read, the divergence and
+    finiteness tests stay), and ``save="final", diagnostics=False``. Ratios of the minima."""
+    system = SYSTEMS["snakeboard"]
+    b, n = cfg.batch, cfg.steps
+    data = maneuvers(system, b)
+
+    def call(read, **kw):
+        def one(q0, qdot0, ctl):
+            traj = lj.simulate(system, q0, qdot0, ctl, t_final=10.0, n_steps=n, check_constraints=False, **kw)
+            return read(traj)
+
+        return jax.jit(jax.vmap(one))
+
+    fns = {
+        "positions only": call(lambda tr: tr.q, save="final", diagnostics=False),
+        "default, Trajectory": call(lambda tr: tr),
+        "default, .q[-1]": call(lambda tr: tr.q[-1]),
+    }
+    for f in fns.values():
+        jax.block_until_ready(f(*data))
+    best = dict.fromkeys(fns, float("inf"))
+    for _ in range(cfg.repeats):
+        for k, f in fns.items():
+            t = time.perf_counter()
+            jax.block_until_ready(f(*data))
+            best[k] = min(best[k], time.perf_counter() - t)
+    rows = []
+    for k, t in best.items():
+        row = dict(call=k, B=b, N=n, ns_per_step=t / (b * n) * 1e9, over_positions=t / best["positions only"])
+        rows.append(row)
+        log(f"  {k}: {row['ns_per_step']:.1f} ns/step, {row['over_positions']:.2f}x positions only")
+    return rows
+
+
 def throughput(cfg: Config, log) -> list[dict]:
     """Forward throughput of every integrator on both models (positions only, batched)."""
     rows = []
@@ -902,6 +940,18 @@ def write_markdown(path, res):
             f"{r['c_ns_per_step']:.1f} | {r['ours_over_c']:.2f} | {r['ours_over_c_cpu']:.2f} |"
             for r in res["ours_over_c"]
         ]
+    if res.get("default_call"):
+        L += [
+            "",
+            "## The default call against positions only (snakeboard, RDP order 2, one device, plain jit)",
+            "",
+            "| call | B x N | ns/step | / positions only |",
+            "|---|---|---|---|",
+        ]
+        L += [
+            f"| {r['call']} | {r['B']} x {r['N']} | {r['ns_per_step']:.1f} | {r['over_positions']:.2f} |"
+            for r in res["default_call"]
+        ]
     L += _section(
         "Forward throughput (positions only, batched)",
         [],
@@ -1073,6 +1123,7 @@ SECTIONS = (
     "headline",
     "compiled_c",
     "ours_over_c",
+    "default_call",
     "throughput",
     "wp_10s",
     "wp_600s",
@@ -1118,6 +1169,7 @@ def main(argv=None) -> int:
         "headline": lambda: headline(cfg, log),
         "compiled_c": lambda: compiled_c(cfg, res.get("headline", []), log),
         "ours_over_c": lambda: ours_over_c(cfg, log),
+        "default_call": lambda: default_call(cfg, log),
         "throughput": lambda: throughput(cfg, log),
         "wp_10s": lambda: work_precision(cfg, 10.0, cfg.wp_steps_10s, log),
         "wp_600s": lambda: work_precision(cfg, 600.0, cfg.wp_steps_600s, log),

@@ -296,6 +296,36 @@ def test_save_options_select_the_same_nodes():
             lj.simulate(car, q0, qdot0, ctl, save=bad, **kw)
 
 
+@pytest.mark.parametrize("name", list(SYSTEMS))
+@pytest.mark.parametrize("make", [lj.RDP, lambda: lj.RDP(order=4), lj.RK4], ids=["RDP2", "RDP4", "RK4"])
+def test_node_diagnostics_equal_the_formulas(name, make):
+    """The default call emits each node's diagnostics as it observes them and carries only the
+    node's power (for the work's trapezoid). They equal, to 1e-12 at every saved node: the
+    formulas on the saved ``(q, qdot)`` (energy, momentum, constraint residual, and the work as
+    the trapezoidal sum of ``<f(t_k), rdot_k>``), and the observations that a feedback run of the
+    same controls carries from step to step (the loop that keeps the whole observation)."""
+    system = SYSTEMS[name]
+    q0, qdot0, ctl = index(maneuvers(system, 1, seed=21), 0)
+    kw = dict(t_final=4.0, n_steps=80, integrator=make())
+    traj = lj.simulate(system, q0, qdot0, ctl, **kw)
+    assert not bool(traj.failed)
+    q, qdot = traj.q, traj.qdot
+    energy = jax.vmap(system.energy)(q, qdot)
+    scale = 1.0 + float(jnp.max(jnp.abs(energy)))
+    np.testing.assert_allclose(traj.energy, energy, rtol=0, atol=1e-12 * scale)
+    np.testing.assert_allclose(traj.momentum, jax.vmap(system.momentum)(q, qdot), rtol=0, atol=1e-12 * scale)
+    np.testing.assert_allclose(
+        traj.constraint_residual, jax.vmap(system.constraint_residual)(q, qdot), atol=1e-12
+    )
+    power = jax.vmap(lambda t, v: system.power(system.inputs(ctl(t))[0], v[3:]))(traj.t, qdot)
+    h = traj.t[1] - traj.t[0]
+    work = np.concatenate([[0.0], np.cumsum(0.5 * h * (power[1:] + power[:-1]))])
+    np.testing.assert_allclose(traj.work, work, rtol=0, atol=1e-12 * scale)
+    carried = lj.simulate(system, q0, qdot0, lj.Policy(lambda t, q, qd: ctl(t), system.n_controls), **kw)
+    for field in ("q", "qdot", "energy", "work", "momentum", "constraint_residual"):
+        np.testing.assert_allclose(getattr(traj, field), getattr(carried, field), rtol=0, atol=1e-12 * scale)
+
+
 def _inner_call_sites(jaxpr, found=None) -> dict:
     """How many call sites each traced-once integrator function (``ldap_jax._tracing``) has in a
     program, keyed by the function's (cached, shared) jaxpr."""

@@ -12,6 +12,7 @@ import numpy as np
 from jaxtyping import Array
 
 from .._newton import newton
+from .._numerics import materialise_result
 from .._results import RESULTS
 from ..lie import compose, dtau_inv, retract
 from ..systems import AbstractClosedFormSystem, AbstractSystem, Observation
@@ -227,7 +228,10 @@ class RDP(AbstractAlphaIntegrator):
     def step(self, system, h, state, c):
         weights = self.weights
         if len(weights) == 1:
-            return self._substep(system, h, state, c[0], c[1])
+            new, info = self._substep(system, h, state, c[0], c[1])
+            # the step's code computed once: the whole step would otherwise be fused into every
+            # consumer of the failure mask (each field of the next state: 15 copies of the step)
+            return new, info._replace(result=materialise_result(info.result))
         # the composition: a scan over the substeps (a short loop, so the step compiles once)
         dtype = jnp.result_type(h)
         gam = jnp.asarray(weights, dtype)

@@ -319,12 +319,14 @@ class AbstractSystem(eqx.Module):
         *,
         rotation: tuple[Array, Array] | None = None,
         momentum: Array | None = None,
+        constraint_residual: Array | None = None,
     ) -> Observation:
         """The :class:`Observation` at a node with configuration ``q``, shape velocity ``u`` and
         body velocity ``xi``; ``controls`` are the channel values at the node's time.
 
-        ``rotation`` (``(cos theta, sin theta)``) and ``momentum`` may be passed when the caller
-        already holds them (the closed-form kernels do); they are computed otherwise.
+        ``rotation`` (``(cos theta, sin theta)``), ``momentum`` and ``constraint_residual`` may be
+        passed when the caller already holds them or has a cheaper way (the closed-form kernels
+        do: they carry the cosines and sines of their angles); they are computed otherwise.
         """
         r = q[3:]
         c, s = rotation if rotation is not None else (jnp.cos(q[2]), jnp.sin(q[2]))
@@ -335,7 +337,9 @@ class AbstractSystem(eqx.Module):
             qdot=jnp.concatenate([xyt, u]),
             energy=self.reduced_energy(r, u, xi),
             momentum=self.reduced_momentum(r, u, xi) if momentum is None else momentum,
-            constraint_residual=self.body_constraint_residual(r, u, xi),
+            constraint_residual=self.body_constraint_residual(r, u, xi)
+            if constraint_residual is None
+            else constraint_residual,
             power=self.power(f, u),
         )
 

@@ -288,7 +288,20 @@ class Snakeboard(AbstractClosedFormSystem):
 
     def kernel_observe(self, state, c):
         q, u, xi, nu = self._kernel_velocity(state)
-        return self.observation(q, u, xi, c, rotation=(state.pose.cos, state.pose.sin), momentum=nu[None])
+        # |C(phi) [xi; u]| (body_constraints) with the carried cos and sin of phi
+        ck, sk = state.cos_phi, state.sin_phi
+        lc = self.l * ck * xi[0]
+        rest = sk * xi[1]
+        rows = (-lc - rest + ck * xi[2], lc + rest + ck * xi[2])
+        return self.observation(
+            q,
+            u,
+            xi,
+            c,
+            rotation=(state.pose.cos, state.pose.sin),
+            momentum=nu[None],
+            constraint_residual=jnp.sqrt(rows[0] ** 2 + rows[1] ** 2),
+        )
 
     def kernel_node(self, state, c):
         q, u, xi, _ = self._kernel_velocity(state)
