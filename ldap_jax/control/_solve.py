@@ -117,8 +117,11 @@ def solve(
     ``jax.grad``/``jax.jacfwd`` of the solution with respect to the task's arrays (model
     parameters, goal, bounds, period) give the sensitivities of the optimum by the implicit
     function theorem at the solution (not by differentiating the iterations). Derivatives of a
-    solve that did not converge are NaN. A batch of problems under ``jax.vmap`` runs on one
-    device; :func:`ldap_jax.shard_vmap` splits it over the devices. With JAX's persistent
+    solve that did not converge are NaN. A batch of problems under ``jax.vmap`` (a family over a
+    bound, a goal, a model parameter) runs on one device, its members one after another, each for
+    its own iterations; :func:`ldap_jax.shard_vmap` splits it over the devices. For a family along
+    a parameter, continuation (``lax.scan``, each member from its neighbour's solution) takes
+    fewer iterations than one common warm start. With JAX's persistent
     compilation cache on (:func:`ldap_jax.enable_compilation_cache`), the solver's programs are
     also kept traced (``jax.export``, in the cache folder): a new process that solves a problem of
     the same structure (other goal, bounds, model parameters or tolerances) neither traces nor
