@@ -22,8 +22,8 @@ from ldap_jax.control import _export, _solve
 def exports(tmp_path, monkeypatch):
     """Exports on, in an empty folder of their own, with nothing loaded in this process."""
     monkeypatch.setenv("LDAP_JAX_EXPORT", "1")
-    if not jax.config.jax_compilation_cache_dir:  # the suite's conftest sets one
-        pytest.skip("no persistent compilation cache directory")
+    # exports apply only with the persistent cache on; tests/conftest.py turns it on for the suite
+    assert jax.config.jax_compilation_cache_dir, "the suite runs with the persistent cache on"
     monkeypatch.setattr(_export, "export_dir", lambda: tmp_path)
     monkeypatch.setattr(_export, "_loaded", {})
     return tmp_path
