@@ -199,3 +199,108 @@ def test_infeasible_prescribed_displacement_is_reported(drive):
     ), lc.SOLVER_RESULTS[bad.result]
     assert float(bad.max_violation) > 1e-3
     assert np.isfinite(float(bad.max_violation))
+
+
+
+def _racer_momentum_equation():
+    """The roller racer's momentum ``p(phi, phidot, s)`` and its rate ``pdot(phi, phidot, s, f)``
+    along the continuous reduced equations (hinge torque ``f``), vectorised; and the coefficients
+    ``a(phi)``, ``beta(phi)`` of ``pdot = a phidot p + beta phidot^2`` read off them."""
+    racer = lj.roller_racer()
+
+    def p(phi, phidot, s):
+        q = jnp.stack([0.0, 0.0, 0.0, phi])
+        return racer.momentum(q, racer.qdot_from_velocities(q, jnp.stack([phidot, s]), jnp.zeros(1)))[0]
+
+    def pdot(phi, phidot, s, f):
+        q = jnp.stack([0.0, 0.0, 0.0, phi])
+        acc = racer.velocity_dynamics(q, jnp.stack([phidot, s]), jnp.stack([f]), jnp.zeros(1))
+        return jax.jvp(p, (phi, phidot, s), (phidot, acc[0], acc[1]))[1]
+
+    def coefficients(phi):
+        # a: the slope in p at unit hinge rate; beta: the rest at unit hinge rate
+        a = (pdot(phi, 1.0, 1.0, 0.0) - pdot(phi, 1.0, 0.0, 0.0)) / (p(phi, 1.0, 1.0) - p(phi, 1.0, 0.0))
+        return a, pdot(phi, 1.0, 0.0, 0.0) - a * p(phi, 1.0, 0.0)
+
+    return racer, jax.jit(jax.vmap(p)), jax.jit(jax.vmap(pdot)), jax.jit(jax.vmap(coefficients))
+
+
+def test_the_roller_racer_has_no_gait_its_momentum_grows_every_cycle():
+    """Why ``lj.roller_racer()`` has no gait: its momentum equation is
+    ``pdot = a(phi) phidot p + beta(phi) phidot^2`` with ``beta > 0`` and no hinge torque in it, so
+    ``Phi(phi) p`` with ``Phi = exp(-int_0^phi a)`` grows by ``int beta Phi phidot^2 dt > 0`` over
+    any cycle in which the hinge moves: no periodic motion but coasting. Checked on the continuous
+    equations at random states (the torque's absence, the form, ``beta > 0`` on [-pi, pi]) and on
+    the model (RDP order 4): over one period of random periodic torques, ``Phi p`` at the nodes
+    never decreases (to 1e-9) and its gain matches the quadrature of ``beta Phi phidot^2``."""
+    racer, P, Pd, coefficients = _racer_momentum_equation()
+    rng = np.random.default_rng(3)
+    phi, phidot = rng.uniform(-np.pi, np.pi, 64), rng.uniform(-3, 3, 64)
+    s, f = rng.uniform(-2, 2, 64), rng.uniform(-5, 5, 64)
+    np.testing.assert_allclose(Pd(phi, phidot, s, f), Pd(phi, phidot, s, 0 * f), rtol=1e-12, atol=1e-12)
+    a, beta = (np.asarray(x) for x in coefficients(phi))
+    rebuilt = a * phidot * np.asarray(P(phi, phidot, s)) + beta * phidot**2
+    np.testing.assert_allclose(Pd(phi, phidot, s, 0 * f), rebuilt, rtol=1e-10, atol=1e-12)
+    assert float(np.min(coefficients(np.linspace(-np.pi, np.pi, 721))[1])) > 0.005
+
+    # the model: one period of random periodic hinge torques from a moving start
+    T, n = 4.0, 400
+    coef, k = rng.normal(size=(2, 3)), np.arange(1, 4)
+
+    def torque(t, q, qdot):
+        w = 2 * jnp.pi * k * t / T
+        return jnp.stack([jnp.sum(coef[0] * jnp.sin(w) + coef[1] * jnp.cos(w))])
+
+    q0 = np.array([0.0, 0.0, 0.0, 0.3])
+    qdot0 = np.asarray(racer.qdot_from_velocities(q0, jnp.array([0.8, -0.4]), jnp.zeros(1)))
+    traj = lj.simulate(racer, q0, qdot0, lj.Policy(torque, 1), t_final=T, n_steps=n, integrator=lj.RDP(order=4))
+    assert traj.result == lj.RESULTS.successful
+    q, qdot = np.asarray(traj.q), np.asarray(traj.qdot)
+    v = np.asarray(jax.vmap(racer.velocities_from_qdot)(q, qdot))
+    phis, rates = q[:, 3], v[:, 0]
+    x, w = np.polynomial.legendre.leggauss(20)  # Phi(phi) = exp(-int_0^phi a), per node
+    a_nodes = np.asarray(coefficients((0.5 * phis[:, None] * (x[None, :] + 1)).ravel())[0])
+    Phi = np.exp(-0.5 * phis * (a_nodes.reshape(-1, x.size) @ w))
+    weighted = Phi * np.asarray(P(phis, rates, v[:, 1]))
+    assert np.all(np.diff(weighted) > -1e-9), np.diff(weighted).min()
+    gain = beta_phi = np.asarray(coefficients(phis)[1]) * Phi * rates**2
+    gain = float(np.sum(0.5 * (beta_phi[1:] + beta_phi[:-1])) * T / n)
+    assert gain > 0.01
+    np.testing.assert_allclose(weighted[-1] - weighted[0], gain, rtol=1e-4)
+
+
+def test_a_gait_of_a_system_of_your_own_through_the_generic_builder(drive):
+    """The snakeboard written as a user's ``lj.System`` (its reduced Lagrangian, connection,
+    symmetry basis and constraints as plain functions: the general RDP step, Newton's method and
+    automatic derivatives instead of the closed-form kernel) through ``lc.make_gait`` with the drive
+    gait's formulation: converged from the same guess to the built-in gait's solution (controls to
+    1e-8, displacement per cycle to 1e-10 m), its constraints (the return conditions among them)
+    met to 1e-9. Its iterations differ (262 against 71): its anchor ``w = 0`` is on the coordinate
+    of the symmetry basis ``e_1 = 2 cos(phi) (sin phi, -l cos phi, 0)``, not on the board speed
+    ``s``, and the interior-point path depends on the constraints' scaling."""
+    task, sol = drive
+    sb = lj.Snakeboard()
+    own = lj.System(
+        2,
+        lambda r, u, xi: sb.reduced_lagrangian(r, u, xi),
+        sb.connection,
+        sb.symmetry_basis,
+        sb.body_constraints,
+        shape_names=("psi", "phi"),
+        singularity=lambda r: jnp.cos(r[1]),
+    )
+    gait = lc.make_gait(
+        own,
+        period=float(task.t_final),
+        n_steps=task.n_steps,
+        objective=task.objective,
+        constraints=task.constraints[1:],  # make_gait adds Periodic itself
+        cyclic=("psi",),
+        bounds=lc.Bounds.of(own, q={"phi": 1.0}, u={"f_psi": 0.1, "f_phi": 0.1}),
+        guess=task.guess,
+    )
+    mine = lc.solve(gait)
+    assert bool(mine.converged), lc.SOLVER_RESULTS[mine.result]
+    assert float(mine.max_violation) <= 1e-9
+    assert abs(float(mine.cost) - float(sol.cost)) <= 1e-10
+    np.testing.assert_allclose(np.asarray(mine.params.controls), np.asarray(sol.params.controls), atol=1e-8)

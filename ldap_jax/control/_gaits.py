@@ -22,6 +22,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
+import jax
 import numpy as np
 
 from .._validation import check_positive_int
@@ -38,7 +39,9 @@ __all__ = ["make_gait", "drive_gait", "turn_gait", "sideways_gait"]
 
 
 def _period(period: Any) -> float:
-    if isinstance(period, bool) or not isinstance(period, (int, float, np.floating, np.integer)):
+    # a Python or NumPy number, or a concrete 0-d array (e.g. another task's ``t_final``)
+    arr = None if isinstance(period, (bool, str, bytes, jax.core.Tracer)) else np.asarray(period)
+    if arr is None or arr.ndim != 0 or arr.dtype.kind not in "iuf":
         raise TypeError(f"'period' must be a positive number (s), got {period!r}")
     if not (math.isfinite(float(period)) and float(period) > 0):
         raise ValueError(f"'period' must be positive and finite (s), got {period!r}")
@@ -70,7 +73,7 @@ def make_gait(
     controls over one period.
 
     Args:
-        system: the model (``lj.Snakeboard()``, ``lj.roller_racer()``, any ``lj.System``).
+        system: the model (``lj.Snakeboard()``, ``lj.Car()``, any ``lj.System``).
         period: the period T (s, > 0).
         n_steps: nodes per period N (>= 2).
         objective: objective terms (e.g. ``(lc.Displacement(),)``: the displacement per cycle).
@@ -87,6 +90,11 @@ def make_gait(
 
     Returns:
         A periodic :class:`Task`; ``lc.solve(task)`` returns :class:`GaitParams` parameters.
+
+    Not every system has a gait. The roller racer's momentum obeys
+    ``p' = a(phi) phidot p + beta(phi) phidot^2`` with ``beta > 0`` and no torque in it, so
+    ``exp(-int_0^phi a) p`` grows over any cycle in which the hinge moves: it has no periodic
+    motion but coasting, and ``lc.solve`` reports its gait task as locally infeasible.
 
     Raises:
         TypeError, ValueError: ``period <= 0``, ``n_steps < 2``, and as :func:`make_task`.
