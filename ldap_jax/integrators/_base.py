@@ -135,3 +135,13 @@ class AbstractAlphaIntegrator(AbstractIntegrator):
     def order(self) -> int:
         a = concrete_float(self.alpha)
         return 2 if a is None or a == 0.5 else 1
+
+
+def refuse_friction(integrator: str, system) -> None:
+    """A ``ValueError`` for an integrator that does not take a system's friction (a dissipation
+    function): DLA and GNI discretise the Lagrangian's full view, without forces on the group."""
+    if getattr(system, "dissipation_fn", None) is not None:
+        raise ValueError(
+            f"{integrator} does not take a system's friction ('dissipation'); use lj.RDP, lj.RK2 or lj.RK4"
+        )
+

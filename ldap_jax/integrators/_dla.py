@@ -18,7 +18,7 @@ from jaxtyping import Array
 from .._linalg import solve
 from .._newton import newton
 from ..systems._base import body_velocity
-from ._base import AbstractAlphaIntegrator, StepInfo, classify, finite
+from ._base import AbstractAlphaIntegrator, StepInfo, classify, finite, refuse_friction
 
 __all__ = ["DLA", "DLAState"]
 
@@ -169,6 +169,7 @@ class DLA(AbstractAlphaIntegrator):
             raise ValueError(f"DLA: 'rtol' must be positive, got {self.rtol!r}")
 
     def init(self, system, h, q0, qdot0, c):
+        refuse_friction("DLA", system)
         p0 = jax.grad(system.lagrangian, argnums=1)(q0, qdot0)
         return DLAState(q=q0, p=p0, v=qdot0)
 

@@ -13,7 +13,7 @@ from jaxtyping import Array
 
 from .._linalg import solve
 from ..systems._base import body_velocity
-from ._base import AbstractAlphaIntegrator, StepInfo, classify, finite
+from ._base import AbstractAlphaIntegrator, StepInfo, classify, finite, refuse_friction
 from ._dla import constraint_rows, legendre_inverse, mass_matrix, step_inputs
 
 __all__ = ["GNI", "GNIState"]
@@ -101,6 +101,7 @@ class GNI(AbstractAlphaIntegrator):
             raise ValueError(f"GNI: 'variant' must be 'faithful' or 'folded', got {self.variant!r}")
 
     def init(self, system, h, q0, qdot0, c):
+        refuse_friction("GNI", system)
         # The explicit form needs a configuration-independent mass matrix (true for the car and
         # the snakeboard in these coordinates); with M(q) the dropped dL/dq terms make it
         # inconsistent, so refuse (inside jit) rather than return a wrong trajectory.

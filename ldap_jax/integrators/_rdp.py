@@ -262,10 +262,18 @@ class RDP(AbstractAlphaIntegrator):
 
     def _residual(self, system, h, r, u, xi, pu_force, mu_in):
         """Horizontal (23) and vertical (21) residuals at ``(u, xi)``; ``pu_force`` is
-        ``pu_k + h (1-a) f_{k+a}``."""
+        ``pu_k + h (1-a) f_{k+a}``. Friction (a dissipation function ``R``) evaluated at the
+        step's ``(r_{k+a}, u, xi)``, split like the shape forces: ``h (1-a) f_r`` joins ``pu_force``
+        and ``h (1-a) F`` is taken off the group momentum before its transport, as if it acted on
+        the step's momentum ``d_xi l``."""
         a = self._alpha(r.dtype)
         r_a = r + a * h * u
         dl_dr, dl_du, dl_dxi = jax.grad(system.reduced_lagrangian, argnums=(0, 1, 2))(r_a, u, xi)
+        friction = system.dissipative_forces(r_a, u, xi)
+        if friction is not None:
+            f_r, F = friction
+            pu_force = pu_force + h * (1 - a) * f_r
+            dl_dxi = dl_dxi - h * (1 - a) * F
         jump = self._dtau(h * xi).T @ dl_dxi - mu_in
         hor = dl_du - h * (1 - a) * dl_dr - system.connection(r).T @ jump - pu_force
         return hor, system.symmetry_basis(r).T @ jump
@@ -307,6 +315,11 @@ class RDP(AbstractAlphaIntegrator):
         u, xi = unpack(z)
         r_a = r + a * h * u
         dl_dr, dl_du, dl_dxi = jax.grad(system.reduced_lagrangian, argnums=(0, 1, 2))(r_a, u, xi)
+        friction = system.dissipative_forces(r_a, u, xi)
+        if friction is not None:  # the step's end takes the share alpha
+            f_r, F = friction
+            f_a = f_a + f_r
+            dl_dxi = dl_dxi + h * a * F
         g_next = compose(q[:3], retract(h * xi, self.retraction))
         new = RDPState(
             q=jnp.concatenate([g_next, r + h * u]),

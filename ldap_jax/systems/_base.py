@@ -247,6 +247,12 @@ class AbstractSystem(eqx.Module):
     def velocity_dynamics(self, q: Array, v: Array, f: Array, u_kin: Array) -> Array:
         """``vdot`` from the Lagrange-d'Alembert equations."""
 
+    def dissipative_forces(self, r: Array, u: Array, xi: Array) -> tuple[Array, Array] | None:
+        """Friction forces ``(f_r, F) = -(d_u R, d_xi R)`` of a Rayleigh dissipation function
+        ``R(r, u, xi)``: on the shape (n,) and on the group (a body-frame covector, paired with
+        ``xi``), or ``None`` (the default) for a system without friction."""
+        return None
+
     def singularity(self, q: Array) -> Array:
         """A scalar that vanishes where the reduced description breaks down (default 1: never).
 
@@ -374,7 +380,8 @@ class AbstractSystem(eqx.Module):
         Solves the KKT system
         ``M(q) qddot = dL/dq - (d/dq dL/dqdot) qdot + F + omega^T lambda``,
         ``omega(q) qddot + (d/dq (omega(q) qdot)) qdot = 0`` and, for kinematic shape
-        coordinates, ``rddot_i = d u_kin_i / dt``. ``F = (0, 0, 0, f)``.
+        coordinates, ``rddot_i = d u_kin_i / dt``. ``F = (0, 0, 0, f)``, plus the friction of a
+        dissipation function (:meth:`dissipative_forces`) where the system has one.
 
         Returns:
             ``(qddot, lambda)``.
@@ -385,6 +392,13 @@ class AbstractSystem(eqx.Module):
         mixed = jax.jacfwd(dl_dqdot, argnums=0)(q, qdot)
         dl_dq = jax.grad(self.lagrangian, argnums=0)(q, qdot)
         force = jnp.zeros(d, q.dtype).at[3:].set(f)
+        friction = self.dissipative_forces(q[3:], qdot[3:], body_velocity(q, qdot))
+        if friction is not None:
+            # the body-frame covector F on (x, y, theta): <F, eta> with eta = (dtheta, R^T (dx, dy))
+            f_r, F = friction
+            c, s = jnp.cos(q[2]), jnp.sin(q[2])
+            on_group = jnp.stack([c * F[1] - s * F[2], s * F[1] + c * F[2], F[0]])
+            force = force + jnp.concatenate([on_group, f_r])
         omega = self.constraint_forms(q)
         kin = np.asarray(self.kinematic_index, dtype=int)
         e_kin = jnp.eye(d, dtype=q.dtype)[3 + kin] if kin.size else jnp.zeros((0, d), q.dtype)

@@ -78,6 +78,15 @@ class System(AbstractSystem):
             (like the car's steering) instead of driven by a force. Default: all force-driven.
         shape_names: names of the shape coordinates (default ``r1, r2, ...``).
         singularity: optional ``s(r) -> scalar`` vanishing where the description breaks down.
+        dissipation: optional Rayleigh dissipation function ``R(r, u, xi) -> scalar`` (``>= 0``,
+            e.g. ``c v_x^2 / 2`` for a viscous rolling resistance): friction forces
+            ``f_r = -d_u R`` on the shape and ``F = -d_xi R`` on the group (a body-frame covector)
+            enter the Lagrange-d'Alembert principle as ``int <f_r, delta r> + <F, eta> dt``. The
+            RDP steps evaluate them at each step's velocities and split them as the shape forces
+            (``1 - alpha`` to the step's start, ``alpha`` to its end); RK and ``lj.reference``
+            take them in the continuous equations; DLA and GNI do not take them (a
+            ``ValueError``). The diagnostics' work ``W`` is that of the controls only, so that
+            ``E_0 + W - E`` is the energy dissipated. Default: none (energy conserved).
 
     Controls: one channel per shape coordinate, in order: a generalized force ``f_i`` on a
     force-driven coordinate, the prescribed velocity ``u_i`` of a kinematic one. (The continuous
@@ -109,6 +118,7 @@ class System(AbstractSystem):
     symmetry_basis_fn: Callable | None
     constraints_fn: Callable | None
     singularity_fn: Callable | None
+    dissipation_fn: Callable | None
     kinematic_mask: tuple[bool, ...] = eqx.field(static=True)
     names: tuple[str, ...] = eqx.field(static=True)
     n_symmetries: int = eqx.field(static=True)
@@ -126,6 +136,7 @@ class System(AbstractSystem):
         kinematic: tuple[bool, ...] | None = None,
         shape_names: tuple[str, ...] | None = None,
         singularity: Callable | None = None,
+        dissipation: Callable | None = None,
     ):
         if isinstance(n_shape, bool) or not isinstance(n_shape, (int, np.integer)):
             raise TypeError(f"System: 'n_shape' must be a non-negative integer, got {n_shape!r}")
@@ -138,6 +149,7 @@ class System(AbstractSystem):
             ("symmetry_basis", symmetry_basis, False),
             ("constraints", constraints, False),
             ("singularity", singularity, False),
+            ("dissipation", dissipation, False),
         ):
             if not callable(fn) and (required or fn is not None):
                 raise TypeError(
@@ -148,6 +160,7 @@ class System(AbstractSystem):
         self.symmetry_basis_fn = symmetry_basis
         self.constraints_fn = constraints
         self.singularity_fn = singularity
+        self.dissipation_fn = dissipation
         self.params = jax.tree_util.tree_map(jnp.asarray, params)
         if kinematic is not None and (
             isinstance(kinematic, (str, bytes)) or not hasattr(kinematic, "__len__")
@@ -197,6 +210,13 @@ class System(AbstractSystem):
             _check_shape("(3 - c) x (3 + n)", "constraints(r)", c, (3 - self.n_symmetries, 3 + self.n))
         if singularity is not None:
             _check_shape("a scalar", "singularity(r)", _shape_of("singularity(r)", call(singularity), r), ())
+        if dissipation is not None:
+            _check_shape(
+                "a scalar",
+                "dissipation(r, u, xi)",
+                _shape_of("dissipation(r, u, xi)", call(dissipation), r, r, xi),
+                (),
+            )
 
     def _call(self, fn, *args):
         return fn(*args) if self.params is None else fn(self.params, *args)
@@ -233,6 +253,13 @@ class System(AbstractSystem):
         kin = jnp.asarray(self.kinematic_mask, bool)
         zero = jnp.zeros_like(controls)
         return jnp.where(kin, zero, controls), jnp.where(kin, controls, zero)
+
+    def dissipative_forces(self, r, u, xi):
+        if self.dissipation_fn is None:
+            return None
+        f_r, F = jax.grad(lambda u_, xi_: self._call(self.dissipation_fn, r, u_, xi_), argnums=(0, 1))(u, xi)
+        kin = jnp.asarray(self.kinematic_mask, bool)  # a kinematic coordinate takes no force
+        return jnp.where(kin, 0.0, -f_r), -F
 
     def singularity(self, q):
         if self.singularity_fn is None:
@@ -302,6 +329,11 @@ class System(AbstractSystem):
             e = self.symmetry_basis(r)
             vert = e.T @ mu_dot - (ad(xi) @ e).T @ mu
             hor = dl_du_dot - dl_dr - self.connection(r).T @ (mu_dot - ad(xi).T @ mu) - f
+            friction = self.dissipative_forces(r, rdot, xi)
+            if friction is not None:  # the virtual displacement eta = e dw - A dr
+                f_r, F = friction
+                hor = hor - f_r + self.connection(r).T @ F
+                vert = vert - e.T @ F
             return jnp.concatenate([hor[dyn], vert])
 
         acc0 = jnp.zeros(self.n_velocities, q.dtype)

@@ -74,6 +74,7 @@ def roller_racer(
     d1: float = 0.5,
     d2: float = 0.3,
     k: float = 1.0,
+    drag: float | None = None,
 ) -> System:
     r"""The roller racer: two wheeled bodies joined by a torque-driven, spring-loaded hinge.
 
@@ -92,11 +93,21 @@ def roller_racer(
     snakeboard-like gait with a different connection, and a potential ``k phi^2 / 2`` so that
     ``d_r l != 0``).
 
+    Without friction the racer has no periodic motion but coasting: its momentum obeys
+    ``p' = a(phi) phidot p + beta(phi) phidot^2`` with ``beta > 0`` (no torque in it), so
+    ``exp(-int_0^phi a) p`` grows over every cycle in which the hinge moves. With ``drag``, a
+    viscous rolling resistance of both axles along their bodies,
+    ``R = drag (v_x^2 + (v_2 . (cos phi, sin phi))^2) / 2``, pumping and drag balance on limit
+    cycles: the racer has gaits (``lc.make_gait``).
+
     Args:
         m1, I1: mass and yaw inertia of the front body. m2, I2: of the rear body.
         d1, d2: front axle to hinge, hinge to rear axle (``d1 != d2``). k: hinge stiffness.
+        drag: rolling-resistance coefficient (N s/m, positive), or ``None`` (default): no friction.
     """
     p = _positive(m1=m1, I1=I1, m2=m2, I2=I2, d1=d1, d2=d2, k=k)
+    if drag is not None:
+        p |= _positive(drag=drag)
     if all(not isinstance(x, jax.core.Tracer) for x in (d1, d2)) and np.any(
         np.isclose(np.asarray(d1), np.asarray(d2))
     ):
@@ -104,12 +115,18 @@ def roller_racer(
             f"parameters 'd1' and 'd2' must differ (the lift is singular at phi = 0), got {d1}, {d2}"
         )
 
+    def rear_axle(p, r, u, xi):
+        """The rear axle's velocity in the front body's frame."""
+        phi, phidot = r[0], u[0]
+        om, vx, vy = xi
+        w2 = om + phidot
+        return vx + p["d2"] * w2 * jnp.sin(phi), vy + p["d1"] * om - p["d2"] * w2 * jnp.cos(phi)
+
     def lagrangian(p, r, u, xi):
         phi, phidot = r[0], u[0]
         om, vx, vy = xi
         w2 = om + phidot
-        v2x = vx + p["d2"] * w2 * jnp.sin(phi)
-        v2y = vy + p["d1"] * om - p["d2"] * w2 * jnp.cos(phi)
+        v2x, v2y = rear_axle(p, r, u, xi)
         kinetic = p["m1"] * (vx**2 + vy**2) + p["I1"] * om**2 + p["m2"] * (v2x**2 + v2y**2) + p["I2"] * w2**2
         return 0.5 * (kinetic - p["k"] * phi**2)
 
@@ -130,4 +147,18 @@ def roller_racer(
             [[z, z, o, z], [p["d1"] * jnp.cos(phi) - p["d2"], -jnp.sin(phi), jnp.cos(phi), -p["d2"] * o]]
         )
 
-    return System(1, lagrangian, connection, symmetry_basis, constraints, params=p, shape_names=("phi",))
+    def dissipation(p, r, u, xi):
+        v2x, v2y = rear_axle(p, r, u, xi)
+        along = v2x * jnp.cos(r[0]) + v2y * jnp.sin(r[0])
+        return 0.5 * p["drag"] * (xi[1] ** 2 + along**2)
+
+    return System(
+        1,
+        lagrangian,
+        connection,
+        symmetry_basis,
+        constraints,
+        params=p,
+        shape_names=("phi",),
+        dissipation=None if drag is None else dissipation,
+    )
