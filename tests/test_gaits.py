@@ -201,7 +201,6 @@ def test_infeasible_prescribed_displacement_is_reported(drive):
     assert np.isfinite(float(bad.max_violation))
 
 
-
 def _racer_momentum_equation():
     """The roller racer's momentum ``p(phi, phidot, s)`` and its rate ``pdot(phi, phidot, s, f)``
     along the continuous reduced equations (hinge torque ``f``), vectorised; and the coefficients
@@ -253,7 +252,9 @@ def test_the_roller_racer_has_no_gait_its_momentum_grows_every_cycle():
 
     q0 = np.array([0.0, 0.0, 0.0, 0.3])
     qdot0 = np.asarray(racer.qdot_from_velocities(q0, jnp.array([0.8, -0.4]), jnp.zeros(1)))
-    traj = lj.simulate(racer, q0, qdot0, lj.Policy(torque, 1), t_final=T, n_steps=n, integrator=lj.RDP(order=4))
+    traj = lj.simulate(
+        racer, q0, qdot0, lj.Policy(torque, 1), t_final=T, n_steps=n, integrator=lj.RDP(order=4)
+    )
     assert traj.result == lj.RESULTS.successful
     q, qdot = np.asarray(traj.q), np.asarray(traj.qdot)
     v = np.asarray(jax.vmap(racer.velocities_from_qdot)(q, qdot))
@@ -269,38 +270,29 @@ def test_the_roller_racer_has_no_gait_its_momentum_grows_every_cycle():
     np.testing.assert_allclose(weighted[-1] - weighted[0], gain, rtol=1e-4)
 
 
-def test_a_gait_of_a_system_of_your_own_through_the_generic_builder(drive):
-    """The snakeboard written as a user's ``lj.System`` (its reduced Lagrangian, connection,
-    symmetry basis and constraints as plain functions: the general RDP step, Newton's method and
-    automatic derivatives instead of the closed-form kernel) through ``lc.make_gait`` with the drive
-    gait's formulation: converged from the same guess to the built-in gait's solution (controls to
-    1e-8, displacement per cycle to 1e-10 m), its constraints (the return conditions among them)
-    met to 1e-9. Its iterations differ (262 against 71): its anchor ``w = 0`` is on the coordinate
-    of the symmetry basis ``e_1 = 2 cos(phi) (sin phi, -l cos phi, 0)``, not on the board speed
-    ``s``, and the interior-point path depends on the constraints' scaling."""
-    task, sol = drive
-    sb = lj.Snakeboard()
-    own = lj.System(
-        2,
-        lambda r, u, xi: sb.reduced_lagrangian(r, u, xi),
-        sb.connection,
-        sb.symmetry_basis,
-        sb.body_constraints,
-        shape_names=("psi", "phi"),
-        singularity=lambda r: jnp.cos(r[1]),
-    )
-    gait = lc.make_gait(
-        own,
-        period=float(task.t_final),
-        n_steps=task.n_steps,
-        objective=task.objective,
-        constraints=task.constraints[1:],  # make_gait adds Periodic itself
-        cyclic=("psi",),
-        bounds=lc.Bounds.of(own, q={"phi": 1.0}, u={"f_psi": 0.1, "f_phi": 0.1}),
-        guess=task.guess,
-    )
-    mine = lc.solve(gait)
-    assert bool(mine.converged), lc.SOLVER_RESULTS[mine.result]
-    assert float(mine.max_violation) <= 1e-9
-    assert abs(float(mine.cost) - float(sol.cost)) <= 1e-10
-    np.testing.assert_allclose(np.asarray(mine.params.controls), np.asarray(sol.params.controls), atol=1e-8)
+def test_a_roller_racer_gait_through_the_generic_builder():
+    """The roller racer with rolling resistance (an ``lj.System`` with a dissipation function, the
+    general RDP step) through ``lc.make_gait`` (``lc.racer_gait()``): converged from its default
+    guess with its constraints met to 1e-9; 3 cycles on the reference return to within 1e-5 of the
+    model's orbit and move as the model's cycle does to 1e-6; every Floquet multiplier lies inside
+    the unit circle (asymptotically stable), and from a perturbed start the cycle map returns to
+    the orbit, the error shrinking every cycle."""
+    task = lc.racer_gait()
+    sol = lc.solve(task)
+    assert bool(sol.converged), lc.SOLVER_RESULTS[sol.result]
+    assert float(sol.max_violation) <= 1e-9
+    assert -float(sol.cost) > 0.5  # metres per cycle
+    rp = lc.replay_gait(task, sol.params, cycles=3)
+    assert rp["reference_result"] == lj.RESULTS.successful
+    assert rp["model_return_error"] <= 1e-9
+    assert np.all(rp["return_error"] < 1e-5), rp["return_error"]
+    assert np.all(rp["displacement_error"] < 1e-6), rp["displacement_error"]
+    assert rp["stability"] == "asymptotically stable", rp["multipliers"]
+    assert np.max(np.abs(rp["multipliers"])) < 0.5
+    z0, _ = lc.monodromy(task, sol.params)
+    P = eqx.filter_jit(lambda z: lc.cycle_map(task, sol.params, z))
+    z, errors = np.asarray(z0) + np.array([0.05, -0.05, 0.05]), []
+    for _ in range(4):
+        z = np.asarray(P(z))
+        errors.append(np.linalg.norm(z - np.asarray(z0)))
+    assert np.all(np.diff(errors) < 0) and errors[-1] < 1e-4, errors

@@ -7,7 +7,7 @@ Problems are written from public pieces: objective terms (:class:`Effort`, :clas
 primal-dual interior-point method with Riccati steps; sensitivities by the implicit function
 theorem); :func:`optimize` minimises the penalty form with optax. Built-in tasks: the car's
 :func:`parallel_park`, :func:`u_turn` and :func:`sideways_gait`, the snakeboard's :func:`reach`,
-:func:`drive_gait` and :func:`turn_gait`.
+:func:`drive_gait` and :func:`turn_gait`, the roller racer's :func:`racer_gait`.
 """
 
 from ._build import make_task as make_task
@@ -30,6 +30,7 @@ from ._gait_analysis import monodromy as monodromy
 from ._gait_analysis import replay_gait as replay_gait
 from ._gaits import drive_gait as drive_gait
 from ._gaits import make_gait as make_gait
+from ._gaits import racer_gait as racer_gait
 from ._gaits import sideways_gait as sideways_gait
 from ._gaits import turn_gait as turn_gait
 from ._ipm import SOLVER_RESULTS as SOLVER_RESULTS

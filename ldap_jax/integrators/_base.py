@@ -144,4 +144,3 @@ def refuse_friction(integrator: str, system) -> None:
         raise ValueError(
             f"{integrator} does not take a system's friction ('dissipation'); use lj.RDP, lj.RK2 or lj.RK4"
         )
-
