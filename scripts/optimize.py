@@ -47,6 +47,7 @@ ITERATIONS = {
 MODEL_TASKS = {
     "car": ("parallel_park", "u_turn", "sideways_gait"),
     "snakeboard": ("forward_gait", "reach", "drive_gait", "turn_gait"),
+    "roller_racer": ("racer_gait",),
 }
 PERIODIC_TASKS = ("forward_gait",)
 INTEGRATORS = {
@@ -173,7 +174,9 @@ def parse_args(argv=None):
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.ArgumentDefaultsHelpFormatter
     )
-    parser.add_argument("--model", choices=["car", "snakeboard"], required=True, help="the system")
+    parser.add_argument(
+        "--model", choices=sorted(MODEL_TASKS), required=True, help="the system (roller_racer: with drag)"
+    )
     parser.add_argument(
         "--task",
         choices=sorted({t for tasks in MODEL_TASKS.values() for t in tasks}),

@@ -77,4 +77,5 @@ TASKS = {
     ("snakeboard", "reach"): reach,
     ("snakeboard", "drive_gait"): drive_gait,
     ("snakeboard", "turn_gait"): turn_gait,
+    ("roller_racer", "racer_gait"): racer_gait,
 }
