@@ -73,7 +73,8 @@ def make_gait(
     controls over one period.
 
     Args:
-        system: the model (``lj.Snakeboard()``, ``lj.Car()``, any ``lj.System``).
+        system: the model (``lj.Snakeboard()``, ``lj.Car()``, ``lj.roller_racer(drag=0.3)``, any
+            ``lj.System``).
         period: the period T (s, > 0).
         n_steps: nodes per period N (>= 2).
         objective: objective terms (e.g. ``(lc.Displacement(),)``: the displacement per cycle).
@@ -94,7 +95,8 @@ def make_gait(
     Not every system has a gait. The roller racer's momentum obeys
     ``p' = a(phi) phidot p + beta(phi) phidot^2`` with ``beta > 0`` and no torque in it, so
     ``exp(-int_0^phi a) p`` grows over any cycle in which the hinge moves: it has no periodic
-    motion but coasting, and ``lc.solve`` reports its gait task as locally infeasible.
+    motion but coasting, and ``lc.solve`` reports its gait task as locally infeasible. With
+    friction (``lj.roller_racer(drag=0.3)``) it has limit cycles: :func:`racer_gait`.
 
     Raises:
         TypeError, ValueError: ``period <= 0``, ``n_steps < 2``, and as :func:`make_task`.
