@@ -457,12 +457,23 @@ def _table(results: list[dict]) -> str:
     )
 
 
+def positive_int(text: str) -> int:
+    """An argparse type: a positive integer (the message names the value)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
+    return value
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument(
         "tasks", nargs="*", metavar="TASK", help=f"tasks to run (default: all of {', '.join(TASKS)})"
     )
-    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--repeats", type=positive_int, default=3)
     parser.add_argument("--guess", choices=("rest", "interpolated"), default=None)
     parser.add_argument(
         "--gaits",
