@@ -505,8 +505,9 @@ def _written(seg_body, carry0, obs0, n_steps, t0, h, sink) -> RolloutOutput:
     first = _masked(first, _node_ok(carry0.result, carry0.failure_index, 0))
 
     def buffer(x0):
-        x0 = jnp.asarray(x0)
-        return jnp.zeros((n_steps + 1,) + x0.shape, x0.dtype).at[0].set(x0)
+        # node 0 in every row: the loop overwrites rows 1..N (a plain broadcast fills faster than
+        # zeros with node 0 written in, which XLA turns into a pad)
+        return jnp.broadcast_to(jnp.asarray(x0), (n_steps + 1,) + jnp.shape(x0))
 
     def inner(carry, k):
         new, out = seg_body(carry, k)
