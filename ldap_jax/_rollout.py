@@ -404,8 +404,6 @@ def rollout(
         seg_body = jax.checkpoint(segment)
     elif stride == 1:
         seg_body = _policy_body(segment, checkpoint)
-        if light and plan.indices is None and not forward_mode:
-            return _written(seg_body, carry0, obs0, n_steps, t0, h, sink)
     carry, outs = jax.lax.scan(seg_body, carry0, jnp.arange(n_seg, dtype=jnp.int32))
     return _assemble(carry, outs, obs0, plan, t0, h, n_steps, sink)
 
@@ -467,93 +465,6 @@ def _chunked(step, emit, carry0, n_steps, checkpoint, plan, t0, h, obs0, sink):
     carry, outs = jax.lax.scan(chunk, carry0, (ks, jnp.asarray(valid_steps).reshape(n_chunks, k)))
     outs = jax.tree_util.tree_map(lambda o: o.reshape((n_chunks * k,) + o.shape[2:])[:n_steps], outs)
     return _assemble(carry, outs, obs0, plan, t0, h, n_steps, sink)
-
-
-#: The most steps whose nodes :func:`_written` writes into the outputs at once.
-_BLOCK = 8
-
-
-def _node_ok(result, failure_index, nodes):
-    """Which nodes a run reports (the rest are NaN): every node up to the failing step's start
-    (every node of a successful run), none for invalid inputs."""
-    ok = (result == RESULTS.successful) | (nodes <= failure_index)
-    return ok & (result != RESULTS.invalid_input)
-
-
-def _masked(out, ok):
-    """A node's outputs ``(obs, work, ...)`` with the observation and work NaN where not ``ok``."""
-    obs, work, *rest = out
-    obs, work = jax.tree_util.tree_map(
-        lambda x: jnp.where(ok, x, jnp.asarray(jnp.nan, x.dtype)) if eqx_inexact(x) else x, (obs, work)
-    )
-    return (obs, work, *rest)
-
-
-def _written(seg_body, carry0, obs0, n_steps, t0, h, sink) -> RolloutOutput:
-    """Every node, written into the outputs by the loop itself (``save="all"``, open loop).
-
-    The outputs ``(N + 1, ...)`` are carried by the loop with node 0 in place, and each block of
-    ``k`` steps (``k`` the largest divisor of ``N`` up to :data:`_BLOCK`) writes its ``k`` nodes,
-    already NaN after a failure, into them. Scanned outputs were stacked step-major and, under
-    ``vmap``, zero-filled, copied, transposed to member-major, joined to node 0 and masked after
-    the loop: four more passes over every node's values (under a user's ``jax.jit(jax.vmap(...))``
-    the passes over 130 MB took about as long as the loop's diagnostics). A block's nodes are
-    written in rows of ``k`` nodes per member."""
-    kb = max(d for d in range(1, _BLOCK + 1) if n_steps % d == 0)
-    dtype = obs0.q.dtype
-    first = (obs0, jnp.zeros((), dtype), jnp.zeros((), dtype), jnp.ones((), bool), jnp.zeros((), jnp.int32))
-    first = _masked(first, _node_ok(carry0.result, carry0.failure_index, 0))
-
-    def buffer(x0):
-        # node 0 in every row: the loop overwrites rows 1..N (a plain broadcast fills faster than
-        # zeros with node 0 written in, which XLA turns into a pad)
-        return jnp.broadcast_to(jnp.asarray(x0), (n_steps + 1,) + jnp.shape(x0))
-
-    def inner(carry, k):
-        new, out = seg_body(carry, k)
-        return new, _masked(out, _node_ok(new.result, new.failure_index, k + 1))
-
-    def outer(c, j):
-        carry, bufs = c
-        carry, block = jax.lax.scan(inner, carry, j * kb + jnp.arange(kb, dtype=jnp.int32))
-        bufs = jax.tree_util.tree_map(
-            lambda b, x: jax.lax.dynamic_update_slice_in_dim(b, x, 1 + j * kb, 0), bufs, block
-        )
-        return (carry, bufs), None
-
-    bufs0 = jax.tree_util.tree_map(buffer, first)
-    (carry, bufs), _ = jax.lax.scan(outer, (carry0, bufs0), jnp.arange(n_steps // kb, dtype=jnp.int32))
-    obs, work, residual, converged, iterations = bufs
-    nodes = jnp.arange(n_steps + 1, dtype=jnp.int32)
-    ok = _node_ok(carry.result, carry.failure_index, nodes)
-    sink, _ = sink
-    obs, work = jax.tree_util.tree_map(
-        lambda x: _premasked_leaf(x, ok, sink) if eqx_inexact(x) else x, (obs, work)
-    )
-    return RolloutOutput(
-        t=t0 + h * nodes.astype(dtype),
-        obs=obs,
-        work=work,
-        step_residual=residual,
-        converged=converged,
-        iterations=iterations,
-        result=carry.result,
-        failure_index=carry.failure_index,
-    )
-
-
-@jax.custom_vjp
-def _premasked_leaf(x, ok, sink):
-    """:func:`failure_mask` of values already NaN where not ``ok``: the identity, with the same
-    derivative (a cotangent read at a failed node makes ``sink``'s gradient NaN)."""
-    return x
-
-
-def _premasked_leaf_fwd(x, ok, sink):
-    return x, (ok, sink)
-
-
-_premasked_leaf.defvjp(_premasked_leaf_fwd, _mask_leaf_bwd)
 
 
 def _assemble(carry, outs, obs0, plan, t0, h, n_steps, sink) -> RolloutOutput:

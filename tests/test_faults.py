@@ -1290,9 +1290,8 @@ def test_every_failure_result_says_what_to_do():
 
 @pytest.mark.xdist_group("faults_issue47")
 @pytest.mark.parametrize("amp", ["healthy", "fails later"])
-def test_nodes_written_by_the_loop_equal_the_selected_nodes(amp):
-    """``save="all"`` (the loop writes each node into the outputs, NaN after a failure in place)
-    equals the same nodes selected by index after the loop: the values bit for bit, the gradients
+def test_save_all_equals_every_node_selected_by_index(amp):
+    """``save="all"`` equals the same nodes given as indices: the values bit for bit, the gradients
     to 1e-12 (a loss reading the failed run gets NaN, one masking it out a finite gradient)."""
     a = AMP if amp == "healthy" else SINGULAR_AMP
 
