@@ -396,40 +396,63 @@ def ours_over_c(cfg: Config, log) -> list[dict]:
 
 
 def default_call(cfg: Config, log) -> list[dict]:
-    """The default call against the positions-only rollout (snakeboard, RDP order 2, B x N, one
-    device, a plain ``jax.jit(jax.vmap(...))``), in alternating rounds: ``lj.simulate`` with its
-    defaults (every node, every diagnostic) returning the whole :class:`~ldap_jax.Trajectory`, the
-    same call read as a user writes it (``.q[-1]``: XLA drops what is not read, the divergence and
-    finiteness tests stay), and ``save="final", diagnostics=False``. Ratios of the minima."""
+    """The default call against the positions-only rollout, and a gradient against its forward
+    (snakeboard, RDP order 2, B x N, one device, a plain ``jax.jit``), in alternating rounds of one
+    process: ``lj.simulate`` with its defaults (every node, every diagnostic) returning the whole
+    :class:`~ldap_jax.Trajectory`, the same call read as a user writes it (``.q[-1]``: XLA drops
+    what is not read, the divergence and finiteness tests stay), ``save="final",
+    diagnostics=False``; the sum of a terminal cost over the batch and its gradient with respect to
+    the controls (``checkpoint=False``). Ratios of the minima of the wall times and of the process
+    CPU times (less sensitive to other processes on a shared machine)."""
     system = SYSTEMS["snakeboard"]
     b, n = cfg.batch, cfg.steps
     data = maneuvers(system, b)
+    q0, qdot0, ctl = data
 
     def call(read, **kw):
         def one(q0, qdot0, ctl):
             traj = lj.simulate(system, q0, qdot0, ctl, t_final=10.0, n_steps=n, check_constraints=False, **kw)
             return read(traj)
 
-        return jax.jit(jax.vmap(one))
+        return jax.jit(jax.vmap(one)), data
+
+    def loss(c):
+        return _terminal_loss(system, q0, qdot0, c, n, False)
 
     fns = {
         "positions only": call(lambda tr: tr.q, save="final", diagnostics=False),
         "default, Trajectory": call(lambda tr: tr),
         "default, .q[-1]": call(lambda tr: tr.q[-1]),
+        "terminal cost": (jax.jit(loss), (ctl,)),
+        "its gradient": (jax.jit(jax.grad(loss)), (ctl,)),
     }
-    for f in fns.values():
-        jax.block_until_ready(f(*data))
+    for f, args in fns.values():
+        jax.block_until_ready(f(*args))
     best = dict.fromkeys(fns, float("inf"))
+    best_cpu = dict.fromkeys(fns, float("inf"))
     for _ in range(cfg.repeats):
-        for k, f in fns.items():
-            t = time.perf_counter()
-            jax.block_until_ready(f(*data))
+        for k, (f, args) in fns.items():
+            t, c = time.perf_counter(), time.process_time()
+            jax.block_until_ready(f(*args))
             best[k] = min(best[k], time.perf_counter() - t)
+            best_cpu[k] = min(best_cpu[k], time.process_time() - c)
     rows = []
     for k, t in best.items():
-        row = dict(call=k, B=b, N=n, ns_per_step=t / (b * n) * 1e9, over_positions=t / best["positions only"])
+        base = "terminal cost" if k == "its gradient" else "positions only"
+        row = dict(
+            call=k,
+            B=b,
+            N=n,
+            ns_per_step=t / (b * n) * 1e9,
+            over=base,
+            ratio=t / best[base],
+            ratio_cpu=best_cpu[k] / best_cpu[base],
+        )
         rows.append(row)
-        log(f"  {k}: {row['ns_per_step']:.1f} ns/step, {row['over_positions']:.2f}x positions only")
+        log(
+            f"  {k}: {row['ns_per_step']:.1f} ns/step, {row['ratio']:.2f}x {base} "
+            f"({row['ratio_cpu']:.2f}x in CPU time)"
+        )
     return rows
 
 
@@ -943,13 +966,15 @@ def write_markdown(path, res):
     if res.get("default_call"):
         L += [
             "",
-            "## The default call against positions only (snakeboard, RDP order 2, one device, plain jit)",
+            "## The default call against positions only, a gradient against its forward "
+            "(snakeboard, RDP order 2, one device, plain jit)",
             "",
-            "| call | B x N | ns/step | / positions only |",
-            "|---|---|---|---|",
+            "| call | B x N | ns/step | against | ratio (wall) | ratio (CPU) |",
+            "|---|---|---|---|---|---|",
         ]
         L += [
-            f"| {r['call']} | {r['B']} x {r['N']} | {r['ns_per_step']:.1f} | {r['over_positions']:.2f} |"
+            f"| {r['call']} | {r['B']} x {r['N']} | {r['ns_per_step']:.1f} | {r['over']} | {r['ratio']:.2f} "
+            f"| {r['ratio_cpu']:.2f} |"
             for r in res["default_call"]
         ]
     L += _section(

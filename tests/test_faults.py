@@ -1286,3 +1286,33 @@ def test_every_failure_result_says_what_to_do():
         message = R[item]
         assert len(message) > 60 and any(w in message for w in ("Reduce", "reduce", "Raise", "call", "Keep"))
     assert "controls" in R[R.invalid_input] and "qdot0" in R[R.invalid_input]
+
+
+@pytest.mark.xdist_group("faults_issue47")
+@pytest.mark.parametrize("amp", ["healthy", "fails later"])
+def test_save_all_equals_every_node_selected_by_index(amp):
+    """``save="all"`` equals the same nodes given as indices: the values bit for bit, the gradients
+    to 1e-12 (a loss reading the failed run gets NaN, one masking it out a finite gradient)."""
+    a = AMP if amp == "healthy" else SINGULAR_AMP
+
+    def run(amp_, save):
+        return lj.simulate(SB, Z5, Z5, lj.Sinusoids(amp_, FREQ, PHASE), t_final=TF, n_steps=N, save=save)
+
+    written, selected = run(a, "all"), run(a, list(range(N + 1)))
+    assert (written.result == R.successful) == (amp == "healthy")
+    for x, y in zip(jax.tree_util.tree_leaves(written), jax.tree_util.tree_leaves(selected)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+    def loss(amp_, save, masked):
+        traj = run(amp_, save)
+        e = jnp.where(traj.failed, 0.0, traj.energy) if masked else traj.energy
+        return jnp.sum(e) + jnp.sum(traj.qdot[N // 2] ** 2 if not masked else 0.0)
+
+    for masked in (False, True):
+        g_w = np.asarray(jax.jit(jax.grad(lambda x, m=masked: loss(x, "all", m)))(a))
+        g_s = np.asarray(jax.jit(jax.grad(lambda x, m=masked: loss(x, list(range(N + 1)), m)))(a))
+        np.testing.assert_allclose(g_w, g_s, rtol=1e-12, atol=0)
+        if amp == "fails later" and not masked:
+            assert np.all(np.isnan(g_w))
+        else:
+            assert np.all(np.isfinite(g_w))
