@@ -605,6 +605,7 @@ def test_solve_bad_inputs_are_clear():
         lc.solve("parallel_park")
 
 
+@PARK40_GROUP  # the small parallel_park with other bounds and goal: its programs
 def test_unreachable_goal_is_reported_not_converged():
     """A goal the torque bound cannot reach in time: no silent answer, converged=False with a reason."""
     task = lc.parallel_park(integrator=lj.RDP(), n_steps=40).with_options(goal=[30.0, 0.25, 0.0])
