@@ -9,7 +9,11 @@ writes one JSON file per worker into DIR at the end of the run:
 * per test (setup + call): the wall time, the compile, trace and lowering times, and the number of
   programs compiled (eager operations compile one each);
 * Python's garbage collections (time and count per generation), the times of the first and the last
-  test, the cache trims of ``tests/conftest.py`` and the largest resident memory.
+  test, the cache trims of ``tests/conftest.py`` and the largest resident memory;
+
+and ``DIR/docs_cells.tsv``: the wall time of every code cell the docs process runs
+(``tests/test_docs.py``'s child, one test's setup in the JSON), a line per cell: document, cell
+index, seconds.
 
 The timing lives here, not in the test suite, so that no test reads the clock.
 """
@@ -71,6 +75,29 @@ def pytest_configure(config):
     monitoring.register_event_listener(_count)
     gc.callbacks.append(_collected)
     lj.trim_compilation_cache = _counting_trims(lj.trim_compilation_cache)  # conftest's calls
+
+
+def _timed_runner(runner: str) -> str:
+    """tests/test_docs.py's runner with each cell's wall time appended to DIR/docs_cells.tsv (an
+    absolute path: the child runs in a temporary folder)."""
+    out = pathlib.Path(os.environ["LDAP_JAX_TEST_PROFILE"]).resolve() / "docs_cells.tsv"
+    timed = (
+        "started = time.perf_counter(); result = shell.run_cell(source)\n"
+        f"            with open({str(out)!r}, 'a') as f:\n"
+        "                print(name, i, f'{time.perf_counter() - started:.2f}', sep='\\t', file=f)"
+    )
+    edits = (("report = {}\n", "report = {}\nimport time\n"), ("result = shell.run_cell(source)", timed))
+    if not all(old in runner for old, _ in edits):
+        return runner  # another runner: untimed
+    for old, new in edits:
+        runner = runner.replace(old, new, 1)
+    return runner
+
+
+def pytest_collection_modifyitems(session, config, items):
+    for module in {getattr(item, "module", None) for item in items}:
+        if isinstance(getattr(module, "RUNNER", None), str):
+            module.RUNNER = _timed_runner(module.RUNNER)
 
 
 def pytest_runtest_setup(item):

@@ -143,9 +143,10 @@ def pytest_collection_modifyitems(config, items):
         group = _GROUPS.get(item.path.name)
         if item.path.name == "test_general.py" and item.name == "test_sleigh_energy_and_momentum_equation":
             group = "closed_form"  # helpers.sleigh_newton_run
-        # a module-scoped fixture is computed once per worker: keep its users together
+        # a module-scoped fixture is computed once per worker: keep its users together (unless the
+        # test names its group itself: pytest-xdist would join both names into a third group)
         scoped = _module_fixtures(item)
-        if group is None and scoped:
+        if group is None and scoped and item.get_closest_marker("xdist_group") is None:
             group = f"{item.path.stem}:{','.join(scoped)}"
         if group is not None:
             item.add_marker(pytest.mark.xdist_group(group))

@@ -459,12 +459,18 @@ def test_solve_reach_snakeboard():
         assert np.max(np.abs(c)) <= 0.1 + 1e-12
 
 
+#: The tests of the small parallel_park (N = 40, RDP order 2) share its compiled programs with
+#: each other and with tests/test_export.py (the same task): one worker runs them all.
+PARK40_GROUP = pytest.mark.xdist_group("parallel_park_40")
+
+
 @pytest.fixture(scope="module")
 def small_park():
     task = lc.parallel_park(integrator=lj.RDP(), n_steps=40)
     return task, task.init()
 
 
+@PARK40_GROUP
 def test_sensitivities_match_finite_differences_of_resolves(small_park):
     """d(optimal effort)/d(goal, mass) and d(optimal controls)/d(goal) by the implicit function
     theorem, in forward and reverse mode, against central differences of re-solves (rtol 1e-4),
@@ -496,10 +502,24 @@ def test_sensitivities_match_finite_differences_of_resolves(small_park):
     np.testing.assert_allclose(dcost[1], (float(cp) - float(cm)) / (2 * eps), rtol=1e-4)
 
 
-def test_solve_vmaps_over_goals(small_park):
+@pytest.fixture(scope="module")
+def vmapped_park(small_park):
+    """One vmapped solve of the small parallel_park over goals and the car's mass (traced: no
+    construction-time check), read by two tests (one compiled program instead of a vmap over the
+    goals and another over the masses): members 0-2 are three goals at the default mass, members
+    3 and 4 the first goal at the invalid masses -1 and 0."""
     task, p0 = small_park
-    goals = task.goal[None] + jnp.array([[0.0, 0.0, 0.0], [0.05, 0.01, 0.0], [-0.05, 0.0, 0.02]])
-    batch = jax.vmap(lambda g: lc.solve(task.with_options(goal=g), p0))(goals)
+    offsets = np.array([[0.0, 0.0, 0.0], [0.05, 0.01, 0.0], [-0.05, 0.0, 0.02], [0.0] * 3, [0.0] * 3])
+    goals = task.goal[None] + jax.device_put(offsets)
+    masses = jax.device_put(np.array([1.0, 1.0, 1.0, -1.0, 0.0]))
+    batch = jax.vmap(lambda g, m: lc.solve(task.with_options(goal=g, system=lj.Car(m=m)), p0))(goals, masses)
+    return goals, batch
+
+
+@PARK40_GROUP
+def test_solve_vmaps_over_goals(small_park, vmapped_park):
+    task, p0 = small_park
+    goals, batch = vmapped_park
     params, converged, iterations = (np.asarray(x) for x in (batch.params, batch.converged, batch.iterations))
     for i in range(3):
         one = lc.solve(task.with_options(goal=goals[i]), p0)
@@ -522,6 +542,7 @@ def _loops(jaxpr, inside=()):
     return out
 
 
+@PARK40_GROUP
 def test_vmapped_solve_runs_its_members_one_after_another(small_park):
     """Under ``jax.vmap`` the interior-point loop of each member runs inside a ``lax.map`` (a scan
     over the members), not as one batched while loop that runs every member for the slowest one's
@@ -533,6 +554,7 @@ def test_vmapped_solve_runs_its_members_one_after_another(small_park):
     assert whiles and all("scan" in inside for inside in whiles), whiles
 
 
+@PARK40_GROUP
 def test_curvature_tol_is_traced_and_reaches_the_same_optimum(small_park):
     """The dynamics' curvature from the first iteration (curvature_tol=inf) instead of below a
     violation of 0.1: the same optimum of parallel_park, and no new interior-point program."""
@@ -583,6 +605,7 @@ def test_solve_bad_inputs_are_clear():
         lc.solve("parallel_park")
 
 
+@PARK40_GROUP  # the small parallel_park with other bounds and goal: its programs
 def test_unreachable_goal_is_reported_not_converged():
     """A goal the torque bound cannot reach in time: no silent answer, converged=False with a reason."""
     task = lc.parallel_park(integrator=lj.RDP(), n_steps=40).with_options(goal=[30.0, 0.25, 0.0])
@@ -758,6 +781,7 @@ def test_penalty_form_on_values_is_one_program():
     assert sum(float(v) for v in terms.values()) == pytest.approx(float(value), rel=1e-13)
 
 
+@PARK40_GROUP
 def test_terms_compose_and_replay_reuses_them(small_park):
     """The penalty form is the sum of its terms; the replay scores the reference with the same terms."""
     task, p0 = small_park
@@ -796,20 +820,23 @@ def test_bad_arguments():
         lc.optimize(task.value, task.init(), n_iterations=3, optimizer="adam")
 
 
-def test_solve_flags_invalid_traced_parameters_and_nan_gradients_of_failures(small_park):
-    """Under vmap over the car's mass [1, -1, 0] (traced: no construction-time check), the solve
-    of each invalid member ends with invalid_input and converged=False, the valid one converges;
-    and the derivative of a solve that did not converge (max_iterations=1) is NaN, not a finite
-    number that looks like a sensitivity."""
+@PARK40_GROUP
+def test_solve_flags_invalid_traced_parameters_and_nan_gradients_of_failures(small_park, vmapped_park):
+    """Under vmap over the car's mass [1, -1, 0] (traced: no construction-time check; members 0, 3
+    and 4 of the shared vmapped solve), the solve of each invalid member ends with invalid_input
+    and converged=False, the valid one converges; and the derivative of a solve that did not
+    converge (max_iterations=1) is NaN, not a finite number that looks like a sensitivity (the
+    derivatives in goal and mass of the sensitivities test: its compiled programs, other values)."""
     task, p0 = small_park
-    masses = jnp.array([1.0, -1.0, 0.0])
-    batch = jax.vmap(lambda m: lc.solve(task.with_options(system=lj.Car(m=m)), p0))(masses)
-    assert np.asarray(batch.converged).tolist() == [True, False, False]
+    _, batch = vmapped_park
+    assert np.asarray(batch.converged)[[0, 3, 4]].tolist() == [True, False, False]
     results = np.asarray(batch.result._value)
-    assert results[1] == results[2] == lc.SOLVER_RESULTS.invalid_input._value
+    assert results[3] == results[4] == lc.SOLVER_RESULTS.invalid_input._value
 
-    def effort(m, iterations):
-        return lc.solve(task.with_options(system=lj.Car(m=m)), p0, max_iterations=iterations).cost
+    def effort(goal, m, iterations):
+        return lc.solve(task.with_options(goal=goal, system=lj.Car(m=m)), p0, max_iterations=iterations).cost
 
-    assert np.isnan(float(jax.grad(effort)(1.0, 1)))
-    assert np.isfinite(float(jax.grad(effort)(1.0, 1000)))
+    grad = jax.grad(effort, argnums=(0, 1))
+    m0 = jnp.asarray(1.0)
+    assert np.isnan(float(grad(task.goal, m0, 1)[1]))
+    assert np.isfinite(float(grad(task.goal, m0, 1000)[1]))

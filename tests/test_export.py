@@ -17,6 +17,10 @@ import ldap_jax as lj
 from ldap_jax import control as lc
 from ldap_jax.control import _export, _solve
 
+# every test here solves tests/test_control.py's small parallel_park (N = 40, RDP order 2): on the
+# worker of its tests, they reuse its compiled programs (the traced run and finish, the derivatives)
+pytestmark = pytest.mark.xdist_group("parallel_park_40")
+
 
 @pytest.fixture
 def exports(tmp_path, monkeypatch):
