@@ -840,3 +840,22 @@ def test_solve_flags_invalid_traced_parameters_and_nan_gradients_of_failures(sma
     m0 = jnp.asarray(1.0)
     assert np.isnan(float(grad(task.goal, m0, 1)[1]))
     assert np.isfinite(float(grad(task.goal, m0, 1000)[1]))
+
+
+@PARK40_GROUP
+def test_eager_vmapped_solve_traces_the_solver_once(small_park, vmapped_park):
+    """An eager ``jax.vmap`` of ``lc.solve`` (no ``jit`` around it) called again with other values
+    traces none of the solver's programs: the map over its members is one compiled program per
+    problem structure (it was traced again on every call: 4 parking solves took 7.2 s per call
+    instead of 0.4 s)."""
+    task, p0 = small_park
+    goals, first = vmapped_park
+    masses = jax.device_put(np.array([1.0, 1.0, 1.0, -1.0, 0.0]))
+    moved = jax.device_put(np.asarray(goals) + np.array([[0.01, 0.0, 0.0]]))
+    with compiled_programs("trace") as names:
+        again = jax.vmap(lambda g, m: lc.solve(task.with_options(goal=g, system=lj.Car(m=m)), p0))(
+            moved, masses
+        )
+    assert not names, names
+    assert np.all(np.asarray(again.converged)[:3])
+    assert np.max(np.abs(np.asarray(again.params)[0] - np.asarray(first.params)[0])) > 1e-4  # a new goal
