@@ -42,6 +42,8 @@ import sys
 import tempfile
 import time
 
+from _args import positive_int
+
 # JAX, NumPy, the library and the CasADi baseline are imported by _load(), after the flags are
 # parsed and checked: a bad flag fails at once (exit status 2, the flag named).
 jax = jnp = np = lj = lc = cb = None
@@ -79,16 +81,6 @@ def _load():
 
     jax, jnp, np, lj, lc, cb = jax_, jnp_, np_, lj_, lc_, cb_
     TASK_FACTORIES.update({name: getattr(lc_, name) for name in TASK_NAMES})
-
-
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}")
-    return value
 
 
 def _seeds(text: str) -> tuple[int, ...]:
@@ -623,7 +615,7 @@ def parse_args(argv=None):
         "--integrator", choices=sorted(INTEGRATORS), default="rdp4", help="lc.solve's model (default: rdp4)"
     )
     p.add_argument(
-        "--repeats", type=_positive_int, default=3, help="timed repeats after the first call (default: 3)"
+        "--repeats", type=positive_int, default=3, help="timed repeats after the first call (default: 3)"
     )
     p.add_argument(
         "--cache", action="store_true", help="also time the first call with a warm persistent cache"

@@ -58,6 +58,7 @@ import statistics
 import time
 
 import numpy as np
+from _args import positive_int
 
 __all__ = ["TASKS", "Problem", "problem", "rhs", "build", "initial_guess", "replay", "run_task"]
 
@@ -455,17 +456,6 @@ def _table(results: list[dict]) -> str:
     return "\n".join(
         [fmt(rows[0]), "|" + "|".join("-" * (w + 2) for w in widths) + "|"] + [fmt(r) for r in rows[1:]]
     )
-
-
-def positive_int(text: str) -> int:
-    """An argparse type: a positive integer (the message names the value)."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
-    return value
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -56,6 +56,7 @@ import statistics
 import time
 
 import numpy as np
+from _args import positive_int
 from casadi_baseline import _CONTROL_NAMES, _STATE_NAMES, CAR, SNAKEBOARD, rhs
 from casadi_baseline import replay as cb_replay
 
@@ -462,22 +463,16 @@ def main(argv: list[str] | None = None) -> None:
     run_cli(parser, args, args.gaits_list)
 
 
-def _positive_int(text: str) -> int:
-    from casadi_baseline import positive_int  # the baseline imports this module: late
-
-    return positive_int(text)
-
-
 def add_arguments(parser: argparse.ArgumentParser, positional: bool = True) -> None:
     if positional:
         parser.add_argument(
             "gaits_list", nargs="*", metavar="GAIT", help=f"gaits to run (default: all of {', '.join(GAITS)})"
         )
-        parser.add_argument("--repeats", type=_positive_int, default=3)
+        parser.add_argument("--repeats", type=positive_int, default=3)
         parser.add_argument("--out", default=None, help="write the results as JSON to this file")
     parser.add_argument(
         "--starts",
-        type=_positive_int,
+        type=positive_int,
         default=None,
         help="initial guesses per gait (default: drive 5, turn 25, sideways 5)",
     )

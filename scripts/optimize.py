@@ -30,6 +30,7 @@ import sys
 import time
 
 import numpy as np
+from _args import positive_int
 
 # JAX, matplotlib and the library are imported by _load(), after the flags are parsed and checked:
 # a bad flag fails at once (exit status 2, the flag named) instead of after seconds of imports.
@@ -74,16 +75,6 @@ def _load():
     from ldap_jax import control as lc_
 
     jax, plt, lj, lc = jax_, plt_, lj_, lc_
-
-
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}")
-    return value
 
 
 def run(task, solver, n_iterations, *, starts, seed, progress=True, label=""):
@@ -198,17 +189,17 @@ def parse_args(argv=None):
         "--integrator", choices=sorted(INTEGRATORS), default="rdp4", help="the dynamics model"
     )
     parser.add_argument(
-        "--starts", type=_positive_int, default=1, help="lc.optimize: random initial guesses (multi-start)"
+        "--starts", type=positive_int, default=1, help="lc.optimize: random initial guesses (multi-start)"
     )
     parser.add_argument(
         "--iterations",
-        type=_positive_int,
+        type=positive_int,
         default=None,
         help="iterations of lc.optimize (default: per task, see ITERATIONS) or the budget of lc.solve "
         "(default 200)",
     )
     parser.add_argument(
-        "--n-steps", type=_positive_int, default=None, help="rollout steps (default: the task's)"
+        "--n-steps", type=positive_int, default=None, help="rollout steps (default: the task's)"
     )
     parser.add_argument("--seed", type=int, default=0, help="seed of the multi-start guesses")
     parser.add_argument("--cache", default=None, metavar="DIR", help="persistent compilation cache directory")
@@ -218,11 +209,11 @@ def parse_args(argv=None):
         help="also optimize with the other integrators at the same step and replay each",
     )
     parser.add_argument(
-        "--family", type=_positive_int, default=None, metavar="N", help="solve a family of N tasks (lc.solve)"
+        "--family", type=positive_int, default=None, metavar="N", help="solve a family of N tasks (lc.solve)"
     )
     parser.add_argument(
         "--cpu-devices",
-        type=_positive_int,
+        type=positive_int,
         default=None,
         help="XLA host devices on CPU (--family: all cores)",
     )

@@ -34,6 +34,9 @@ import os
 import sys
 import time
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # also when loaded by file path
+from _args import positive_int  # noqa: E402
+
 # Failures are data in the study (result codes); an in-jit runtime check that fired would raise
 # through a host callback, which can deadlock a computation sharded over several XLA host
 # devices. Turn equinox's runtime checks into NaNs (reported as failures) for this script.
@@ -58,16 +61,6 @@ METHOD_NAMES = (
     "rk4",
 )
 MODEL_NAMES = ("snakeboard", "car")
-
-
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}")
-    return value
 
 
 def _positive_float(text: str) -> float:
@@ -138,11 +131,11 @@ def parse_args(argv=None):
     )
     p.add_argument(
         "--resolutions",
-        type=_list(_positive_int),
+        type=_list(positive_int),
         default=None,
         help="comma-separated N (default 250,500,1000,2000,4000)",
     )
-    p.add_argument("--runs", type=_positive_int, default=None, help="maneuvers per model (default 1000)")
+    p.add_argument("--runs", type=positive_int, default=None, help="maneuvers per model (default 1000)")
     p.add_argument(
         "--duration",
         type=_list(_duration),
@@ -151,12 +144,12 @@ def parse_args(argv=None):
     )
     p.add_argument("--model", type=_models, default=None, help="snakeboard, car or all (default all)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--repeats", type=_positive_int, default=None, help="timed repeats per point (default 3)")
+    p.add_argument("--repeats", type=positive_int, default=None, help="timed repeats per point (default 3)")
     p.add_argument(
         "--reference-step", type=_positive_float, default=None, help="RK4 reference step (default 5e-3)"
     )
     p.add_argument(
-        "--cpu-devices", type=_positive_int, default=os.cpu_count() or 1, help="XLA host devices on CPU"
+        "--cpu-devices", type=positive_int, default=os.cpu_count() or 1, help="XLA host devices on CPU"
     )
     p.add_argument("--list", action="store_true", help="list the method names and exit")
     p.add_argument(
