@@ -394,11 +394,10 @@ class AbstractSystem(eqx.Module):
         force = jnp.zeros(d, q.dtype).at[3:].set(f)
         friction = self.dissipative_forces(q[3:], qdot[3:], body_velocity(q, qdot))
         if friction is not None:
-            # the body-frame covector F on (x, y, theta): <F, eta> with eta = (dtheta, R^T (dx, dy))
+            # the body-frame covector F on (x, y, theta): <F, eta> with eta = (dtheta, R^T (dx, dy)),
+            # so (R (F_x, F_y), F_theta): the rotation of a body velocity (R orthogonal)
             f_r, F = friction
-            c, s = jnp.cos(q[2]), jnp.sin(q[2])
-            on_group = jnp.stack([c * F[1] - s * F[2], s * F[1] + c * F[2], F[0]])
-            force = force + jnp.concatenate([on_group, f_r])
+            force = force + jnp.concatenate([spatial_velocity(q, F), f_r])
         omega = self.constraint_forms(q)
         kin = np.asarray(self.kinematic_index, dtype=int)
         e_kin = jnp.eye(d, dtype=q.dtype)[3 + kin] if kin.size else jnp.zeros((0, d), q.dtype)
