@@ -277,13 +277,12 @@ def racer_gait(
         ValueError: a racer without friction.
     """
     racer = system if system is not None else roller_racer(drag=0.3)
-    if getattr(racer, "dissipation_fn", None) is None:
+    if not racer.has_friction:
         raise ValueError(
             "racer_gait: 'system' needs friction (e.g. lj.roller_racer(drag=0.3)): without it the "
             "racer has no periodic motion but coasting"
         )
-    n_steps = _steps(n_steps)
-    s = np.linspace(0.0, 1.0, n_steps + 1)
+    s = np.linspace(0.0, 1.0, _steps(n_steps) + 1)
     return make_gait(
         racer,
         period=period,

@@ -140,7 +140,7 @@ class AbstractAlphaIntegrator(AbstractIntegrator):
 def refuse_friction(integrator: str, system) -> None:
     """A ``ValueError`` for an integrator that does not take a system's friction (a dissipation
     function): DLA and GNI discretise the Lagrangian's full view, without forces on the group."""
-    if getattr(system, "dissipation_fn", None) is not None:
+    if system.has_friction:
         raise ValueError(
             f"{integrator} does not take a system's friction ('dissipation'); use lj.RDP, lj.RK2 or lj.RK4"
         )

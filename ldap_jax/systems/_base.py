@@ -247,6 +247,11 @@ class AbstractSystem(eqx.Module):
     def velocity_dynamics(self, q: Array, v: Array, f: Array, u_kin: Array) -> Array:
         """``vdot`` from the Lagrange-d'Alembert equations."""
 
+    @property
+    def has_friction(self) -> bool:
+        """Whether :meth:`dissipative_forces` gives forces (default False)."""
+        return False
+
     def dissipative_forces(self, r: Array, u: Array, xi: Array) -> tuple[Array, Array] | None:
         """Friction forces ``(f_r, F) = -(d_u R, d_xi R)`` of a Rayleigh dissipation function
         ``R(r, u, xi)``: on the shape (n,) and on the group (a body-frame covector, paired with

@@ -254,6 +254,10 @@ class System(AbstractSystem):
         zero = jnp.zeros_like(controls)
         return jnp.where(kin, zero, controls), jnp.where(kin, controls, zero)
 
+    @property
+    def has_friction(self) -> bool:  # type: ignore[override]
+        return self.dissipation_fn is not None
+
     def dissipative_forces(self, r, u, xi):
         if self.dissipation_fn is None:
             return None
