@@ -80,7 +80,9 @@ def pytest_configure(config):
 def _timed_runner(runner: str) -> str:
     """tests/test_docs.py's runner with each cell's wall time appended to DIR/docs_cells.tsv (an
     absolute path: the child runs in a temporary folder)."""
-    out = pathlib.Path(os.environ["LDAP_JAX_TEST_PROFILE"]).resolve() / "docs_cells.tsv"
+    folder = pathlib.Path(os.environ["LDAP_JAX_TEST_PROFILE"]).resolve()
+    folder.mkdir(parents=True, exist_ok=True)  # the child appends to it before any worker ends
+    out = folder / "docs_cells.tsv"
     timed = (
         "started = time.perf_counter(); result = shell.run_cell(source)\n"
         f"            with open({str(out)!r}, 'a') as f:\n"
