@@ -7,6 +7,7 @@ import os
 import subprocess
 import sys
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -176,3 +177,54 @@ def test_a_new_process_solves_from_the_export(tmp_path):
     for run in runs:
         assert run["iterations"] == int(want.iterations)
         np.testing.assert_allclose(np.asarray(run["params"]), np.asarray(want.params), rtol=1e-12, atol=1e-12)
+
+
+#: prints the key of the roller racer's gait (an lj.System of library functions) in a new process
+RACER_KEY = """
+import jax
+jax.config.update("jax_enable_x64", True)
+import sys
+sys.path.insert(0, sys.argv[1])
+from test_export import _key
+from ldap_jax import control as lc
+print(_key(lc.racer_gait()))
+"""
+
+
+def test_library_functions_are_keyed_by_name_user_functions_never():
+    """A system of the library's own functions (``lj.roller_racer``: nested functions, one
+    calling another through its closure) is exported under a key that a new process computes
+    alike (its code is in the library's source hash); its parameter values are arguments, and the
+    racer without friction is another key. A system holding a user-written function, or a library
+    function whose closure holds an array, is never exported."""
+    import pathlib
+
+    key = _key(lc.racer_gait())
+    assert key is not None
+    assert _key(lc.racer_gait(lj.roller_racer(drag=0.5, m1=2.0))) == key
+    res = subprocess.run(
+        [sys.executable, "-c", RACER_KEY, str(pathlib.Path(__file__).parent)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert res.stdout.strip().splitlines()[-1] == key
+    racer, frictionless = lj.roller_racer(drag=0.3), lj.roller_racer()
+    assert _export._signature("run", (frictionless,))[0] != _export._signature("run", (racer,))[0]
+
+    def swap(fn):
+        return eqx.tree_at(lambda s: s.lagrangian_fn, racer, fn)
+
+    def lagrangian(*args):  # a user's function: its code is not in the key
+        return racer.lagrangian_fn(*args)
+
+    assert _export._signature("run", (swap(lagrangian),)) is None
+    for held in (np.ones(3), lagrangian):  # held by a library function's closure
+
+        def library(*args, held=held):
+            return held
+
+        library.__module__ = "ldap_jax.systems"
+        assert _export._static_text(library) is None
+        assert _export._signature("run", (swap(library),)) is None

@@ -42,6 +42,7 @@ import pathlib
 import re
 import tempfile
 import threading
+import types
 import warnings
 from collections.abc import Callable
 from typing import Any
@@ -147,16 +148,50 @@ def _signature(name: str, args: tuple) -> tuple[str, list, Any, Any] | None:
     return None if key is False else (key, leaves, static, treedef)
 
 
+#: plain values a library function's closure may hold and still be keyed by its text
+_PLAIN = (bool, int, float, complex, str, bytes, type(None))
+
+
+def _static_text(x: Any, seen: frozenset = frozenset()) -> str | None:
+    """The text of a static leaf in a key, or ``None`` if it cannot be keyed across processes.
+
+    A function defined in the library (e.g. the Lagrangian of ``lj.roller_racer()``, a nested
+    function whose parameters are arguments) is its module and qualified name, with the values
+    its closure holds: its code is in the key through the library's source hash. Its closure may
+    hold other such functions and plain Python values; anything else (an array, a user's
+    function or object) makes the leaf unkeyable. Other leaves are their ``repr``
+    (an object identity in it, ``at 0x...``, makes the whole key unusable)."""
+    if isinstance(x, types.FunctionType) and (x.__module__ or "").split(".")[0] == "ldap_jax":
+        if id(x) in seen:  # a closure that refers back to itself
+            return f"<{x.__qualname__}>"
+        cells = [c.cell_contents for c in x.__closure__ or ()]
+        held = (*cells, *(x.__defaults__ or ()), *(x.__kwdefaults__ or {}).values())
+        parts = [_static_text(v, seen | {id(x)}) for v in held]
+        if None in parts:
+            return None
+        return f"<function {x.__module__}.{x.__qualname__}({','.join(parts)})>"
+    if isinstance(x, types.FunctionType):
+        return None
+    if seen and not (
+        isinstance(x, _PLAIN) or (isinstance(x, tuple) and all(isinstance(v, _PLAIN) for v in x))
+    ):
+        return None  # inside a closure: only plain values are keyed by their text
+    return repr(x)
+
+
 def _key(name, leaves, treedef, static_leaves, static_def) -> str | bool:
     """The key of a program (see the module's docstring), or ``False`` for none."""
     described = _describe(treedef), _describe(static_def)
     if None in described or not all(_known(type(x)) for x in static_leaves):
         return False
+    static_text = [_static_text(x) for x in static_leaves]
+    if None in static_text:
+        return False
     text = "\n".join(
         [
             name,
             *described,
-            repr(static_leaves),
+            repr(static_text),
             repr([(tuple(x.shape), str(x.dtype)) for x in leaves]),
             _source_hash(),
         ]
