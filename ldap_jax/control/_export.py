@@ -332,8 +332,9 @@ def _without_locations(exported):
     Every operation of a traced module carries its Python traceback and name stack, which XLA
     keeps as metadata on each instruction of the compiled program and of its serialized
     executable: stripped, the solver's run executable is a quarter smaller (4.3 -> 3.1 MB on
-    ``parallel_park``) and a later process reads it from the persistent cache faster. An export
-    that cannot be stripped (a future JAX) is kept as it is."""
+    ``parallel_park``) and XLA deserialises it in 0.41 s of CPU instead of 0.46 s (best of six,
+    alternating in one process); its compilation takes as long. An export that cannot be
+    stripped (a future JAX) is kept as it is."""
     try:
         import dataclasses
 
