@@ -329,7 +329,7 @@ def _load_or_export(name, key, fun, leaves, static, treedef, out_template) -> Ca
 
         try:
             avals = [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in leaves]
-            exported = jex.export(jax.jit(flat))(*avals)
+            exported = _without_locations(jex.export(jax.jit(flat))(*avals))
             if traced_out[-1] != out_def:  # the template does not describe the output
                 return None
             lapack = "lapack" in exported.mlir_module()  # a LAPACK call (none in the solver's)
@@ -359,6 +359,32 @@ def _load_or_export(name, key, fun, leaves, static, treedef, out_template) -> Ca
         return jax.tree_util.tree_unflatten(out_def, outs)
 
     return runner
+
+
+def _without_locations(exported):
+    """``exported`` with its module's source locations removed (MLIR's ``strip-debuginfo``).
+
+    Every operation of a traced module carries its Python traceback and name stack, which XLA
+    keeps as metadata on each instruction of the compiled program and of its serialized
+    executable: stripped, the solver's run executable is a quarter smaller (4.3 -> 3.1 MB on
+    ``parallel_park``) and XLA deserialises it in 0.41 s of CPU instead of 0.46 s (best of six,
+    alternating in one process); its compilation takes as long. An export that cannot be
+    stripped (a future JAX) is kept as it is."""
+    try:
+        import dataclasses
+
+        from jax._src.export import _export as internal
+        from jax._src.interpreters import mlir
+        from jax._src.lib import _jax
+        from jax._src.lib.mlir import passmanager
+
+        with mlir.make_ir_context():
+            module = _jax.mlir.deserialize_portable_artifact(exported.mlir_module_serialized)
+            passmanager.PassManager.parse("builtin.module(strip-debuginfo)").run(module.operation)
+            stripped = internal._module_to_bytecode(module)
+        return dataclasses.replace(exported, mlir_module_serialized=stripped)
+    except Exception:  # pragma: no cover - a future JAX: keep the locations
+        return exported
 
 
 @contextlib.contextmanager

@@ -174,7 +174,7 @@ def _line_search(fns, st: IPMState, d: Derivatives, b: _Bounds, step: _Step, opt
     tau = jnp.maximum(options.tau_min, 1.0 - mu)
     a_max = _fraction_to_boundary(st.chi, sol.dx, b.lo, b.hi, tau)
     theta0 = theta(d.defects, d.cK)
-    phi0 = _barrier_objective(fns, b, st.chi, st.v, mu)
+    phi0 = d.f - mu * b.log_barrier(st.chi)  # the barrier objective at the current point
     slope = jnp.sum(step.g * sol.dx) + jnp.sum(d.gv * sol.dv)
     theta_max = jnp.where(jnp.isfinite(st.theta_max), st.theta_max, 1e4 * jnp.maximum(1.0, theta0))
     theta_min = 1e-4 * jnp.maximum(1.0, theta_max / 1e4)
@@ -354,6 +354,7 @@ def initial_state(
         held=jnp.zeros((), bool),
         resets=jnp.zeros((), jnp.int32),
         result=SOLVER_RESULTS.max_iterations,
+        stopped=jnp.zeros((), bool),
     )
 
 
@@ -369,16 +370,21 @@ def ipm_solve(
     zero = jnp.zeros((), dtype)
 
     def cond(st: IPMState):
-        return (st.result == SOLVER_RESULTS.max_iterations) & (st.iteration < options.max_iterations)
+        return ~st.stopped
 
     def body(st: IPMState):
+        # every pass evaluates the current point; the loop stops after the pass that finds it
+        # optimal, or after the pass that follows a failed step or the last iteration: the
+        # returned point's KKT error and violation are always its own
         d = derivatives(fns, st.p, st.chi, st.v, st.y, st.nu, jnp.asarray(options.exact_hessian_tol, dtype))
         parts = _kkt_parts(st, d, b)
         e0 = _kkt_error(parts, st, b, zero)
-        done = e0 <= tol
+        ended = (st.result != SOLVER_RESULTS.max_iterations) | (st.iteration >= options.max_iterations)
+        done = ~ended & (e0 <= tol)
+        stop = ended | done
         stepped = _iterate(fns, st, d, parts, b, options, tol)
-        st = jax.tree_util.tree_map(lambda a, c: jnp.where(done, a, c), st, stepped)
-        st = st._replace(error=e0, violation=parts[1])
+        st = jax.tree_util.tree_map(lambda a, c: jnp.where(stop, a, c), st, stepped)
+        st = st._replace(error=e0, violation=parts[1], stopped=stop)
         return st._replace(result=SOLVER_RESULTS.where(done, SOLVER_RESULTS.successful, st.result))
 
     return jax.lax.while_loop(cond, body, st)

@@ -72,6 +72,7 @@ class IPMState(NamedTuple):
     violation: Float[Array, ""]  # largest constraint violation (max norm) at the iterate
     held: Bool[Array, ""]  # the last iteration updated only the multipliers (see ``_next_point``)
     resets: Int[Array, ""]  # restarts after failed line searches far from feasibility
+    stopped: Bool[Array, ""]  # the iteration has ended (``result`` says why)
     result: SOLVER_RESULTS
 
 

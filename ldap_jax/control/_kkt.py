@@ -58,6 +58,7 @@ class Derivatives(NamedTuple):
     cK: Float[Array, " p"]
     CK: Float[Array, "p n"]
     QK: Float[Array, "n n"]  # Hessian of l_K + nu^T c (no barrier)
+    f: Float[Array, ""]  # the objective
 
 
 def rollout(fns: OCPFunctions, p: Array, v: Array) -> Array:
@@ -151,15 +152,16 @@ def derivatives(
     and ``W_p`` (and the terminal constraints' ``QK``) once the constraint violation
     ``theta = |defects|_1 + |c_K|_1``, from this same evaluation of the dynamics, is at most
     ``exact_tol``; before, the Hessian is Gauss-Newton (the objective's curvature)."""
-    K, n = chi.shape
-    m = v.shape[1]
     dtype = chi.dtype
     F, Z = _jacobians(fns, chi, v)
-    G, f1 = jax.jacfwd(lambda q: (fns.first(q),) * 2, has_aux=True)(p)
+    # F_0's value, Jacobian and second derivatives in one pass (s is small: forward over forward)
+    (H0, (G, f1)) = _second_order(jax.jacfwd, jax.jacfwd, fns.first, p)
     defects = jnp.concatenate([(f1 - chi[0])[None], F - chi[1:]])
-    gc, gv = jax.vmap(jax.grad(fns.stage_cost, argnums=(0, 1)))(chi[:-1], v)
+    (gc, gv), costs = jax.vmap(_grad_and_value(fns.stage_cost))(chi[:-1], v)
     chiK = chi[-1]
-    CK, cK = jax.jacfwd(lambda c: (fns.terminal(c),) * 2, has_aux=True)(chiK)
+    # the terminal cost and constraints, with their Jacobians and Hessians, in one pass
+    HK, (JK, vK) = _second_order(jax.jacfwd, jax.jacrev, _terminal_values(fns), chiK)
+    cK, CK = vK[1:], JK[1:]
     exact = theta(defects, cK) <= exact_tol
 
     W = jax.lax.cond(
@@ -168,20 +170,45 @@ def derivatives(
         lambda _: _stage_hessians(fns, chi, v, y, False),
         None,
     )
-    Wp = jax.lax.cond(
-        exact,
-        lambda _: jax.hessian(lambda q: y[0] @ fns.first(q))(p),
-        lambda _: jnp.zeros((p.shape[0],) * 2, dtype),
-        None,
-    )
+    Wp = jnp.where(exact, jnp.einsum("i,ijk->jk", y[0], H0), 0.0)
+    QK = HK[0] + exact.astype(dtype) * jnp.einsum("i,ijk->jk", nu, HK[1:])
+    g = jnp.concatenate([gc, JK[0][None]])
+    f = jnp.sum(costs) + vK[0]
+    return Derivatives(defects=defects, G=G, Wp=Wp, Z=Z, W=W, g=g, gv=gv, cK=cK, CK=CK, QK=QK, f=f)
 
-    def lagrangian_K(c, weight):
-        return fns.terminal_cost(c) + weight * nu @ fns.terminal(c)
 
-    QK = jax.hessian(lagrangian_K)(chiK, exact.astype(dtype))
-    g = jnp.concatenate([gc, jax.grad(fns.terminal_cost)(chiK)[None]])
-    del K, m
-    return Derivatives(defects=defects, G=G, Wp=Wp, Z=Z, W=W, g=g, gv=gv, cK=cK, CK=CK, QK=QK)
+def _second_order(outer, inner, fun, x):
+    """``(fun'', (fun', fun))`` at ``x`` by ``outer(inner(fun))`` (``jax.jacfwd``/``jax.jacrev``),
+    one traced copy of ``fun`` for all three."""
+
+    def first(z):
+        out = fun(z)
+        return out, out
+
+    def second(z):
+        jac, out = inner(first, has_aux=True)(z)
+        return jac, (jac, out)
+
+    return outer(second, has_aux=True)(x)
+
+
+def _grad_and_value(fun):
+    """``((d fun/d chi, d fun/d v), fun)`` of a stage function (one traced copy)."""
+
+    def with_aux(c, vv):
+        out = fun(c, vv)
+        return out, out
+
+    return jax.grad(with_aux, argnums=(0, 1), has_aux=True)
+
+
+def _terminal_values(fns: OCPFunctions):
+    """``chi_K -> (l_K, c)``: the terminal cost and constraints as one vector."""
+
+    def values(c):
+        return jnp.concatenate([fns.terminal_cost(c)[None], fns.terminal(c)])
+
+    return values
 
 
 def dual_residuals(d: Derivatives, y: Array, nu: Array, zl: Array, zu: Array) -> tuple[Array, Array, Array]:

@@ -24,7 +24,9 @@ __all__ = ["parallel_park", "u_turn", "forward_gait", "reach", "car_effort_scale
 def car_effort_scale(car: Car) -> np.ndarray:
     """The car tasks' control scales: the wheel torque by the wheel's inertia ``I + m rho^2``
     (N m), the steering rate by 0.5 (1/s)."""
-    return np.asarray([float(car.I + car.m * car.rho**2), 0.5])
+    # on the host (NumPy): each eager JAX operation costs a compilation in a new process
+    I, m, rho = (float(np.asarray(x)) for x in (car.I, car.m, car.rho))  # noqa: E741
+    return np.asarray([I + m * rho**2, 0.5])
 
 
 def _car_to_rest(
