@@ -73,6 +73,27 @@ def test_reloaded_export_gives_the_traced_solution(exports):
     _assert_same(again, reference)
 
 
+def test_a_batch_of_starts_is_served_from_its_export(exports):
+    """A batch of guesses (the multi-start path: every start's run in one program, the best one
+    finished) is exported too: read back without tracing the batch's run or the finish, it gives
+    the traced program's solution, which is the best start's own solve."""
+    task = lc.parallel_park(integrator=lj.RDP(), n_steps=40)
+    guess = task.init()
+    starts = jax.tree_util.tree_map(lambda x: np.stack([np.asarray(x), 0.5 * np.asarray(x)]), guess)
+    reference = _traced(task, starts)
+    first = lc.solve(task, starts)
+    assert len(list(exports.glob("*.jaxexport"))) == 2  # the batch's run and the finish
+    _export._loaded.clear()
+    with compiled_programs("trace") as traced:
+        again = lc.solve(task, starts)
+    programs = {"export_run_batch", "export_finish", "_run_batch", "_run_one", "_finish"}
+    assert not programs & set(traced), traced
+    assert bool(reference.converged) and reference.starts == 2
+    for sol in (first, again):
+        _assert_same(sol, reference)
+        assert sol.starts == 2 and sol.starts_converged == reference.starts_converged
+
+
 def test_values_are_arguments_and_structures_are_keys(exports):
     """A new goal, mass or tolerance is an argument of the same export (same key, and the solution
     of the traced program for those values); a new number of steps, integrator order, retraction

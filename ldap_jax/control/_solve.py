@@ -169,9 +169,11 @@ def solve(
     options, params0, batched = _checked(task, params0, tol, max_iterations, hessian, curvature_tol, barrier)
     task = _solver_view(task)
     if batched:
-        st, violation, cost = _run_batch(_stopped(task), _stopped(params0), options)
+        args = (_stopped(task), _stopped(params0), options)
+        runs = _export.call("run_batch", _run_batch.__wrapped__, args, lambda: (*_run_template(), 0))
+        st, violation, cost = _run_batch(*args) if runs is NotImplemented else runs
         st, violation, n_ok = _best(st, violation, cost)
-        sol = _finish(task, st, violation)
+        sol = _finished(task, st, violation, params0)
         return dataclasses.replace(
             sol, starts=int(jax.tree_util.tree_leaves(params0)[0].shape[0]), starts_converged=n_ok
         )
@@ -185,6 +187,11 @@ def _solve_one(task: Task, params0, options: IPMOptions) -> Solution:
     args = (_stopped(task), _stopped(params0), options)
     run = _export.call("run", _run_one, args, _run_template)
     st, violation = _run(*args) if run is NotImplemented else run
+    return _finished(task, st, violation, params0)
+
+
+def _finished(task: Task, st: IPMState, violation: Array, params0) -> Solution:
+    """:func:`_finish` through its exported program where it can be (at the top level)."""
     sol = _export.call(
         "finish", _finish.__wrapped__, (task, st, violation), lambda: _template(params0), top_level=True
     )
