@@ -22,10 +22,11 @@ A structure whose description holds an object identity (a ``<function ... at 0x.
 user-written term or system method captured as static data) or a type from outside the library,
 JAX, equinox and NumPy (a class of your own: its code is not in the key) is never exported.
 
-``lc.solve`` exports two programs: the interior-point run and the finish (the optimum with its
-IFT derivative rule, the model-error estimate). Under a user's ``jit`` or ``vmap`` both are traced
-as always; under ``grad``/``jvp`` the run's inputs are cut from differentiation, so the run is
-the exported program, and the finish (whose derivative rule gives the sensitivities) is traced.
+``lc.solve`` exports two programs: the interior-point run (for a batch of guesses, the run of
+every start) and the finish (the optimum with its IFT derivative rule, the model-error
+estimate). Under a user's ``jit`` or ``vmap`` both are traced as always; under ``grad``/``jvp``
+the run's inputs are cut from differentiation, so the run is the exported program, and the finish
+(whose derivative rule gives the sensitivities) is traced.
 
 The exports live in the persistent compilation cache's directory (``jax_compilation_cache_dir``,
 set by :func:`ldap_jax.enable_compilation_cache`), under ``ldap_jax_exports/``; without a cache
