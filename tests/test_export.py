@@ -249,3 +249,25 @@ def test_library_functions_are_keyed_by_name_user_functions_never():
         library.__module__ = "ldap_jax.systems"
         assert _export._static_text(library) is None
         assert _export._signature("run", (swap(library),)) is None
+
+
+def test_gait_analysis_is_served_from_its_export(exports):
+    """The cycle map's analysis behind ``lc.monodromy`` and ``lc.replay_gait`` (one period and
+    its Jacobian) goes through an exported program like the solver's: read back without tracing,
+    it gives the traced program's values."""
+    from ldap_jax.control import _gait_analysis
+
+    task = lc.drive_gait(n_steps=8)
+    params = task.init()
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("LDAP_JAX_EXPORT", "0")
+        want = _gait_analysis._analysis(task, params)
+    first = _gait_analysis._analysis(task, params)
+    assert len(list(exports.glob("*.jaxexport"))) == 1
+    _export._loaded.clear()
+    with compiled_programs("trace") as traced:
+        again = _gait_analysis._analysis(task, params)
+    assert not {"export_gait_analysis", "_analysis_of"} & set(traced), traced
+    for got in (first, again):
+        for x, y in zip(got, want):
+            np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-12, atol=1e-12)

@@ -24,6 +24,7 @@ from jaxtyping import Array
 
 from .. import lie
 from .._reference import reference
+from . import _export
 from ._task import Task
 
 __all__ = ["cycle_map", "monodromy", "floquet", "replay_gait"]
@@ -60,18 +61,36 @@ def cycle_map(task: Task, params, z: Array) -> Array:
     return _one_cycle(task, params, z)[0]
 
 
-@eqx.filter_jit
-def _analysis(task: Task, params):
+def _analysis_of(task: Task, params):
     q0, qdot0 = task.initial_state(params)
     z0 = reduced_state(task, q0, qdot0)
     (z1, g1) = _one_cycle(task, params, z0)
     M = jax.jacfwd(lambda z: cycle_map(task, params, z))(z0)
-    return z0, z1, g1, M
+    return z0, z1, g1, M, q0, qdot0
+
+
+_analysis_traced = eqx.filter_jit(_analysis_of)
+
+
+def _analysis(task: Task, params):
+    """``(z*, P(z*), the group's displacement over the cycle, M, q0, qdot0)``, through the program an earlier
+    process exported when it can (as ``lc.solve``'s: no tracing in a new process)."""
+    out = _export.call("gait_analysis", _analysis_of, (task, params), lambda: (0,) * 6)
+    return _analysis_traced(task, params) if out is NotImplemented else out
+
+
+@eqx.filter_jit
+def _cycle_starts(task: Task, q: Array, qdot: Array) -> tuple[Array, Array]:
+    """The reduced states at the cycles' starts and the group's displacement over each cycle
+    (one program, not an eager operation each)."""
+    z = jax.vmap(lambda a, b: reduced_state(task, a, b))(q, qdot)
+    g = q[:, :3]
+    return z, jax.vmap(lambda a, b: lie.compose(lie.inverse(a), b))(g[:-1], g[1:])
 
 
 def monodromy(task: Task, params) -> tuple[Array, Array]:
     """``(z*, M)``: the gait's start reduced state and the Jacobian of the cycle map there."""
-    z0, _, _, M = _analysis(task, params)
+    z0, _, _, M, _, _ = _analysis(task, params)
     return z0, M
 
 
@@ -156,16 +175,14 @@ def replay_gait(task: Task, params, *, cycles: int = 3, rtol: float = 1e-11, ato
     if isinstance(cycles, bool) or not isinstance(cycles, (int, np.integer)) or cycles < 1:
         raise ValueError(f"'cycles' must be a positive integer, got {cycles!r}")
     cycles = int(cycles)
-    z0, z1, g1, M = (np.asarray(x) for x in _analysis(task, params))
-    q0, qdot0 = task.initial_state(params)
+    z0, z1, g1, M, q0, qdot0 = _analysis(task, params)
+    z0, z1, g1, M = (np.asarray(x) for x in (z0, z1, g1, M))
     n = task.n_steps
     ts = np.linspace(0.0, cycles * float(task.t_final), cycles * n + 1)
     ref = reference(task.system, q0, qdot0, task.controls(params).over(cycles), ts, rtol=rtol, atol=atol)
-    q, qdot = np.asarray(ref.q), np.asarray(ref.qdot)
+    q = np.asarray(ref.q)
     idx = np.arange(cycles + 1) * n
-    z_ref = np.asarray(jax.vmap(lambda a, b: reduced_state(task, a, b))(q[idx], qdot[idx]))
-    g = q[idx, :3]
-    dg = np.array(jax.vmap(lambda a, b: lie.compose(lie.inverse(a), b))(g[:-1], g[1:]))
+    z_ref, dg = (np.array(x) for x in _cycle_starts(task, ref.q[idx], ref.qdot[idx]))
     dg[:, 2] = [math.remainder(x, 2 * math.pi) for x in dg[:, 2]]
     g1 = np.array(g1)
     g1[2] = math.remainder(float(g1[2]), 2 * math.pi)
