@@ -271,3 +271,22 @@ def test_gait_analysis_is_served_from_its_export(exports):
     for got in (first, again):
         for x, y in zip(got, want):
             np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-12, atol=1e-12)
+
+
+def test_gait_tracker_is_served_from_its_export(exports):
+    """``lc.gait_tracker``'s program (the linearised cycle and the periodic Riccati sweeps) goes
+    through an exported program: read back without tracing, the same gains to 1e-12."""
+    task = lc.drive_gait(n_steps=8)
+    params = task.init()
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("LDAP_JAX_EXPORT", "0")
+        want = lc.gait_tracker(task, params)
+    first = lc.gait_tracker(task, params)
+    assert len(list(exports.glob("*.jaxexport"))) == 1
+    _export._loaded.clear()
+    with compiled_programs("trace") as traced:
+        again = lc.gait_tracker(task, params, q_weight=2.0)  # a weight is an argument
+    assert not {"export_gait_tracker", "_tracker_of"} & set(traced), traced
+    np.testing.assert_allclose(np.asarray(first.gains), np.asarray(want.gains), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(first.z_ref), np.asarray(want.z_ref), rtol=1e-12, atol=1e-12)
+    assert not np.allclose(np.asarray(again.gains), np.asarray(want.gains))

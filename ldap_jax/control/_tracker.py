@@ -25,6 +25,7 @@ from jaxtyping import Array, Float
 
 from .._discrete import discretize
 from .._policy import AbstractPolicy
+from . import _export
 from ._gait_analysis import _keep, reduced_state
 from ._task import Task
 
@@ -115,8 +116,7 @@ def periodic_lqr(A: Array, B: Array, Q: Array, R: Array, sweeps: int = 20) -> tu
     return Ks[-1], P0
 
 
-@eqx.filter_jit
-def _tracker(task: Task, params, q_weight, r_weight, sweeps: int):
+def _tracker_of(task: Task, params, q_weight, r_weight, sweeps: int):
     z_nodes, A, B = _linearised_steps(task, params)
     nz = A.shape[1]
     scale = task.parameterization.scale
@@ -124,6 +124,17 @@ def _tracker(task: Task, params, q_weight, r_weight, sweeps: int):
     R = r_weight * jnp.diag(1.0 / scale**2)
     K, _ = periodic_lqr(A, B, Q, R, sweeps)
     return z_nodes, K
+
+
+_tracker_traced = eqx.filter_jit(_tracker_of)
+
+
+def _tracker(task: Task, params, q_weight, r_weight, sweeps: int):
+    """``(reference reduced states, gains)``, through the program an earlier process exported when
+    it can (as ``lc.solve``'s: no tracing in a new process)."""
+    args = (task, params, q_weight, r_weight, sweeps)
+    out = _export.call("gait_tracker", _tracker_of, args, lambda: (0, 0))
+    return _tracker_traced(*args) if out is NotImplemented else out
 
 
 def gait_tracker(
@@ -153,7 +164,10 @@ def gait_tracker(
             f"gait_tracker needs a periodic task (lc.drive_gait(), lc.make_gait(...)), got {task.name!r}"
         )
     params = getattr(solution, "params", solution)
-    z_nodes, K = _tracker(task, params, jnp.asarray(q_weight), jnp.asarray(r_weight), int(sweeps))
+    # host values stay NumPy (an eager jnp.asarray is a program of its own in a new process)
+    real = jnp.result_type(float)
+    weights = [w if isinstance(w, jax.Array) else np.asarray(w, real) for w in (q_weight, r_weight)]
+    z_nodes, K = _tracker(task, params, *weights, int(sweeps))
     b = task.bounds
     return GaitTracker(
         feedforward=task.controls(params),
