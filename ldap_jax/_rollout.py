@@ -15,6 +15,7 @@ balance.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from typing import Any, NamedTuple
@@ -233,7 +234,11 @@ def rollout(
             :func:`failure_mask_linear` (a custom VJP has no forward mode).
     """
     from ._policy import AbstractPolicy
+    from .integrators import RDP
 
+    if isinstance(integrator, RDP) and not forward_mode and integrator.uses_kernel(system):
+        # reverse mode only: the closed-form step's hand-written VJP (the same values)
+        integrator = dataclasses.replace(integrator, reverse_only=True)
     dtype = q0.dtype
     fractions = jnp.asarray(integrator.control_nodes, dtype)
     node_is_last = float(integrator.control_nodes[-1]) == 1.0
