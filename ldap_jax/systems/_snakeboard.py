@@ -416,6 +416,10 @@ def _symmetric_bwd(res, ct):
     cw0b = -tbb / ws + crb
     w_big = -tab * big_a / ws - tbb * big_b / ws + cw0 * sw0b - sw0 * cw0b
     wb = wb + jnp.where(small, w_small, w_big)
+    # a division by a runtime 1 marks a value "expensive" for XLA's fusion pass, which then computes
+    # it once instead of fusing the chain that makes it into every consumer
+    one = jax.lax.stop_gradient(w) * 0 + 1
+    wb, v2b = wb / one, v2b / one
     xi0b = xi0b + h * wb
     xi1b = xi1b + h * v2b
     # xi = (c sin 2phi_a, -2 l cos^2 phi_a c, 0)
@@ -441,6 +445,7 @@ def _symmetric_bwd(res, ct):
     sab = sab + k4 * ca * ck * sk + 2 * ca * s2ab
     ckb = k4 * ca * (gk + ca * ck) + 2 * sk * s2kb + nub * (2 * sk * mu0 - 4 * l * ck * mu1)
     skb = k4 * ca * ck * sa + 2 * ck * s2kb + nub * 2 * ck * mu0
+    sab, cab, skb, ckb = sab / one, cab / one, skb / one, ckb / one
     # phi_a and phi_{k+1}: (sa, ca) = (sk, ck) turned by d, (sn, cn) = (sa, ca) turned by d, renormalised
     sn_, cn_ = sa * cd + ca * sd, ca * cd - sa * sd
     unit = 1.5 - 0.5 * (sn_ * sn_ + cn_ * cn_)
