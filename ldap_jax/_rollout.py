@@ -233,6 +233,7 @@ def rollout(
         forward_mode: the caller differentiates in forward mode: the failed nodes are masked by
             :func:`failure_mask_linear` (a custom VJP has no forward mode).
     """
+    from ._controls import Sinusoids
     from ._policy import AbstractPolicy
     from .integrators import RDP
 
@@ -246,7 +247,9 @@ def rollout(
     if policy:
         sample_open = None
     else:
-        sample_open = controls.sampler(h, fractions)
+        # outside forward mode, the sinusoids' hand-written VJP (the same values)
+        reverse_only = {"reverse_only": True} if isinstance(controls, Sinusoids) and not forward_mode else {}
+        sample_open = controls.sampler(h, fractions, **reverse_only)
 
     def sample(k, obs):
         t = t0 + h * k.astype(dtype)
