@@ -402,10 +402,10 @@ def default_call(cfg: Config, log) -> list[dict]:
     :class:`~ldap_jax.Trajectory`, the same call read as a user writes it (``.q[-1]``: XLA drops
     what is not read, the divergence and finiteness tests stay), ``save="final",
     diagnostics=False``; the sum of a terminal cost over the batch and its gradient with respect to
-    the controls (``checkpoint=False``), also with JAX's own derivatives of the step and the
-    sampler in place of their hand-written VJPs (:func:`_autodiff_problem`). Ratios of the minima
-    of the wall times and of the process CPU times (less sensitive to other processes on a shared
-    machine)."""
+    the controls (``checkpoint=False``), also with JAX's own derivative of the sampler, and of the
+    step and the sampler, in place of their hand-written VJPs (:func:`_autodiff_problem`). Ratios
+    of the minima of the wall times and of the process CPU times (less sensitive to other
+    processes on a shared machine)."""
     system = SYSTEMS["snakeboard"]
     b, n = cfg.batch, cfg.steps
     data = maneuvers(system, b)
@@ -432,6 +432,7 @@ def default_call(cfg: Config, log) -> list[dict]:
         "default, .q[-1]": call(lambda tr: tr.q[-1]),
         "terminal cost": (jax.jit(loss), (ctl,)),
         "its gradient": (jax.jit(jax.grad(loss)), (ctl,)),
+        "its gradient, the step's VJP alone": (jax.jit(jax.grad(loss)), (ad_ctl,)),
         "its gradient, JAX's derivatives": (jax.jit(jax.grad(ad_loss)), (ad_ctl,)),
     }
     for f, args in fns.values():
