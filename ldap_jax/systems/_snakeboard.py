@@ -93,6 +93,17 @@ class Snakeboard(AbstractClosedFormSystem):
             + self.m * (xi[1] ** 2 + xi[2] ** 2)
         )
 
+    def reduced_energy(self, r, u, xi):
+        """``E = l`` (the reduced Lagrangian is the kinetic energy), written out: the general
+        ``<d_u l, u> + <d_xi l, xi> - l`` by autodiff left a dot product of its own in every
+        node's observation."""
+        return self.reduced_lagrangian(r, u, xi)
+
+    def power(self, f, rdot):
+        """``<f, rdot> = f_psi psidot + f_phi phidot``, written out (a dot product was a kernel
+        of its own in every node's observation)."""
+        return f[0] * rdot[0] + f[1] * rdot[1]
+
     def connection(self, r):
         phi = r[1]
         z = jnp.zeros_like(phi)
