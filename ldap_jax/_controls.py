@@ -16,7 +16,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from ._fields import converter_field
-from ._numerics import sincos
+from ._numerics import plain_active, sincos
 from ._typing import ArrayLike
 
 __all__ = ["AbstractControls", "Sinusoids", "Sampled", "Constant"]
@@ -140,7 +140,7 @@ class Sinusoids(AbstractControls):
         term = jnp.where(w > 0, jnp.minimum(2 * a / safe_w, a * span), a * span)
         return jnp.sum(term, axis=-1)
 
-    def sampler(self, h, fractions):
+    def sampler(self, h, fractions, *, reverse_only: bool = False):
         """Angle addition: ``sin(w (t + f h) + p) = sin(w t + p) cos(w f h) + cos(w t + p) sin(w f h)``,
         with the ``(cos, sin)(w f h)`` of a step computed once: one ``sincos`` per term and step,
         however many fractions the integrator reads. Written term by term on scalars, so that a
@@ -152,7 +152,13 @@ class Sinusoids(AbstractControls):
         one process). Compiled with :func:`ldap_jax.compiler_options` (as the library's own entry
         points are) the array form ran 0.90x for order 4 and RK4 and 1.02-1.04x for ``RDP()``; the
         term-by-term form under XLA's defaults is the fastest of the four (order 4: 5.1e6 steps/s
-        against 3.2e6 at best on arrays)."""
+        against 3.2e6 at best on arrays).
+
+        ``reverse_only`` (a program differentiated in reverse mode only: the rollout of
+        :func:`~ldap_jax.simulate` outside forward mode): the same values, each term with a
+        hand-written VJP (:func:`_sinusoid_term`) that sends the derivative through
+        ``(sin, cos)(w f h)`` to ``w`` and ``h`` at once, so that a rollout's backward pass keeps
+        three cotangents per term (``A``, ``W``, ``P``), not five (and the two of shape ``S``)."""
         n_ch, n_terms = self.amplitude.shape[-2:]
         ds, dc = sincos(self.frequency[None] * (h * fractions)[:, None, None])  # (S, channels, terms)
         # every coefficient a scalar of its own, taken apart here, before the rollout's loop: under
@@ -167,6 +173,8 @@ class Sinusoids(AbstractControls):
             for i in range(n_ch)
         ]
 
+        custom = reverse_only and not plain_active()
+
         def sample(t):
             if not n_ch:
                 return jnp.zeros((fractions.shape[0], 0), t.dtype)
@@ -174,12 +182,51 @@ class Sinusoids(AbstractControls):
             for i in range(n_ch):
                 col = 0.0
                 for a, w, p, dsv, dcv in terms[i]:
-                    s, c = sincos(w * t + p, whole=True)
-                    col = col + a * (s * dcv + c * dsv)
+                    if custom:
+                        sc = jax.lax.stop_gradient((fractions, dsv, dcv))
+                        col = col + _sinusoid_term(a, w, p, t, h, sc)
+                    else:
+                        s, c = sincos(w * t + p, whole=True)
+                        col = col + a * (s * dcv + c * dsv)
                 columns.append(col)
             return jnp.stack(columns, axis=-1)
 
         return sample
+
+
+@jax.custom_vjp
+def _sinusoid_term(a, w, p, t, h, sc):
+    """One term of :meth:`Sinusoids.sampler` at the fractions ``f`` of a step:
+    ``a (sin x DC + cos x DS)``, ``x = w t + p``, with ``(f, DS, DC) = sc``, ``(DS, DC)`` the values of
+    ``(sin, cos)(w f h)`` (computed once, before the loop). Its VJP, for the cotangent ``g`` (S,)::
+
+        a_bar = sum_s g_s (sin x DC_s + cos x DS_s),   x_bar = a sum_s g_s (cos x DC_s - sin x DS_s),
+        y_bar_s = a g_s (cos x DC_s - sin x DS_s)          (y_s = w f_s h, the argument of DS, DC)
+        w_bar = t x_bar + sum_s f_s h y_bar_s,   p_bar = x_bar,   t_bar = w x_bar,
+        h_bar = sum_s f_s w y_bar_s.
+    """
+    _, ds, dc = sc
+    s, c = sincos(w * t + p, whole=True)
+    return a * (s * dc + c * ds)
+
+
+def _sinusoid_term_fwd(a, w, p, t, h, sc):
+    return _sinusoid_term(a, w, p, t, h, sc), (a, w, p, t, h, sc)
+
+
+def _sinusoid_term_bwd(res, g):
+    a, w, p, t, h, (f, ds, dc) = res
+    s, c = sincos(w * t + p, whole=True)
+    # the few fractions written out (a reduce over a short axis is a kernel of its own)
+    gs = [g[i] for i in range(g.shape[0])]
+    a_b = sum(gi * (s * dc[i] + c * ds[i]) for i, gi in enumerate(gs))
+    y_b = [a * gi * (c * dc[i] - s * ds[i]) for i, gi in enumerate(gs)]
+    x_b = sum(y_b)
+    fy = sum(f[i] * yi for i, yi in enumerate(y_b))
+    return a_b, t * x_b + h * fy, x_b, w * x_b, w * fy, None
+
+
+_sinusoid_term.defvjp(_sinusoid_term_fwd, _sinusoid_term_bwd)
 
 
 class Sampled(AbstractControls):

@@ -15,6 +15,7 @@ balance.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from typing import Any, NamedTuple
@@ -232,8 +233,13 @@ def rollout(
         forward_mode: the caller differentiates in forward mode: the failed nodes are masked by
             :func:`failure_mask_linear` (a custom VJP has no forward mode).
     """
+    from ._controls import Sinusoids
     from ._policy import AbstractPolicy
+    from .integrators import RDP
 
+    if isinstance(integrator, RDP) and not forward_mode and integrator.uses_kernel(system):
+        # reverse mode only: the closed-form step's hand-written VJP (the same values)
+        integrator = dataclasses.replace(integrator, reverse_only=True)
     dtype = q0.dtype
     fractions = jnp.asarray(integrator.control_nodes, dtype)
     node_is_last = float(integrator.control_nodes[-1]) == 1.0
@@ -241,7 +247,9 @@ def rollout(
     if policy:
         sample_open = None
     else:
-        sample_open = controls.sampler(h, fractions)
+        # outside forward mode, the sinusoids' hand-written VJP (the same values)
+        reverse_only = {"reverse_only": True} if isinstance(controls, Sinusoids) and not forward_mode else {}
+        sample_open = controls.sampler(h, fractions, **reverse_only)
 
     def sample(k, obs):
         t = t0 + h * k.astype(dtype)

@@ -402,8 +402,10 @@ def default_call(cfg: Config, log) -> list[dict]:
     :class:`~ldap_jax.Trajectory`, the same call read as a user writes it (``.q[-1]``: XLA drops
     what is not read, the divergence and finiteness tests stay), ``save="final",
     diagnostics=False``; the sum of a terminal cost over the batch and its gradient with respect to
-    the controls (``checkpoint=False``). Ratios of the minima of the wall times and of the process
-    CPU times (less sensitive to other processes on a shared machine)."""
+    the controls (``checkpoint=False``), also with JAX's own derivative of the sampler, and of the
+    step and the sampler, in place of their hand-written VJPs (:func:`_autodiff_problem`). Ratios
+    of the minima of the wall times and of the process CPU times (less sensitive to other
+    processes on a shared machine)."""
     system = SYSTEMS["snakeboard"]
     b, n = cfg.batch, cfg.steps
     data = maneuvers(system, b)
@@ -419,12 +421,19 @@ def default_call(cfg: Config, log) -> list[dict]:
     def loss(c):
         return _terminal_loss(system, q0, qdot0, c, n, False)
 
+    ad_system, ad_ctl = _autodiff_problem(system, ctl)
+
+    def ad_loss(c):
+        return _terminal_loss(ad_system, q0, qdot0, c, n, False)
+
     fns = {
         "positions only": call(lambda tr: tr.q, save="final", diagnostics=False),
         "default, Trajectory": call(lambda tr: tr),
         "default, .q[-1]": call(lambda tr: tr.q[-1]),
         "terminal cost": (jax.jit(loss), (ctl,)),
         "its gradient": (jax.jit(jax.grad(loss)), (ctl,)),
+        "its gradient, the step's VJP alone": (jax.jit(jax.grad(loss)), (ad_ctl,)),
+        "its gradient, JAX's derivatives": (jax.jit(jax.grad(ad_loss)), (ad_ctl,)),
     }
     for f, args in fns.values():
         jax.block_until_ready(f(*args))
@@ -438,7 +447,7 @@ def default_call(cfg: Config, log) -> list[dict]:
             best_cpu[k] = min(best_cpu[k], time.process_time() - c)
     rows = []
     for k, t in best.items():
-        base = "terminal cost" if k == "its gradient" else "positions only"
+        base = "terminal cost" if k.startswith("its gradient") else "positions only"
         row = dict(
             call=k,
             B=b,
@@ -454,6 +463,22 @@ def default_call(cfg: Config, log) -> list[dict]:
             f"({row['ratio_cpu']:.2f}x in CPU time)"
         )
     return rows
+
+
+def _autodiff_problem(system, ctl):
+    """The snakeboard and sinusoids without their hand-written VJPs (JAX differentiates the step
+    and the sampler itself): the gradient's cost before them, in the same process."""
+
+    class AutodiffSnakeboard(type(system)):
+        def kernel_step_reverse(self, alpha, h, retraction, state, c0, c1):
+            return self.kernel_step(alpha, h, retraction, state, c0, c1)
+
+    class AutodiffSinusoids(type(ctl)):
+        def sampler(self, h, fractions, *, reverse_only=False):
+            return super().sampler(h, fractions)
+
+    new_system = AutodiffSnakeboard(m=system.m, l=system.l, I=system.I, J=system.J)
+    return new_system, AutodiffSinusoids(amplitude=ctl.amplitude, frequency=ctl.frequency, phase=ctl.phase)
 
 
 def throughput(cfg: Config, log) -> list[dict]:

@@ -435,3 +435,168 @@ def test_closed_form_sleigh_equals_newton_on_the_library_sleigh(retraction):
     assert float(np.min(np.abs(heading[:, -1] - heading[:, 0]))) > 1.0
     e = np.asarray(kern.energy)
     assert np.abs(e - e[:, :1]).max() < 1e-6 * e[:, 0].min()
+
+
+# ------------------------------------------------------------- the snakeboard step's hand-written VJP
+class _AutodiffSnakeboard(lj.Snakeboard):
+    """The snakeboard with JAX's own derivative of its kernel step (no hand-written VJP)."""
+
+    def kernel_step_reverse(self, alpha, h, retraction, state, c0, c1):
+        return self.kernel_step(alpha, h, retraction, state, c0, c1)
+
+
+class _AutodiffSinusoids(lj.Sinusoids):
+    """Sinusoids with JAX's own derivative of the sampler (no hand-written VJP)."""
+
+    def sampler(self, h, fractions, *, reverse_only=False):
+        return super().sampler(h, fractions)
+
+
+def _autodiff_controls(ctl):
+    return _AutodiffSinusoids(amplitude=ctl.amplitude, frequency=ctl.frequency, phase=ctl.phase)
+
+
+@pytest.mark.parametrize("order", [2, 4])
+def test_sinusoid_sampler_vjp_equals_autodiff(order):
+    """The sampler's hand-written VJP (per term) equals JAX's VJP of the same sampler, in the
+    coefficients, the step and the time, at the fractions of order 2 (0, 1) and of order 4's
+    composition, under ``vmap``, at random coefficients and cotangents; the values are the same."""
+    rng = np.random.default_rng(3)
+    n = 8
+    ctl = lj.Sinusoids(
+        amplitude=jnp.asarray(rng.normal(size=(n, 2, 3))),
+        frequency=jnp.asarray(rng.uniform(-3, 3, size=(n, 2, 3))),
+        phase=jnp.asarray(rng.uniform(0, 6, size=(n, 2, 3))),
+    )
+    fractions = jnp.asarray(lj.RDP(order=order).control_nodes)
+    t = jnp.asarray(rng.uniform(0, 20, size=n))
+    h = jnp.asarray(rng.uniform(0.001, 0.3, size=n))
+
+    def vjp(reverse_only, ct):
+        def one(ctl, h, t, ct):
+            def f(c, h, t):
+                return c.sampler(h, fractions, reverse_only=reverse_only)(t)
+
+            out, pull = jax.vjp(f, ctl, h, t)
+            return out, pull(ct)
+
+        return jax.jit(jax.vmap(one))(ctl, h, t, ct)
+
+    ct = jnp.asarray(rng.normal(size=(n, fractions.shape[0], 2)))
+    (o1, g1), (o2, g2) = vjp(False, ct), vjp(True, ct)
+    np.testing.assert_allclose(o2, o1, rtol=1e-15, atol=1e-15)
+    _leaves_close(g2, g1, f"order {order}")
+
+
+def _leaves_close(a, b, what):
+    """Every leaf of ``a`` equals ``b``'s to 1e-12 of the largest entry of ``b`` (a cotangent that
+    is exactly zero in one is exactly zero in the other)."""
+    la, lb = jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)
+    assert len(la) == len(lb)
+    scale = max(float(np.max(np.abs(np.asarray(x)))) for x in lb)
+    assert scale > 0, what
+    for x, y in zip(la, lb):
+        assert np.all(np.isfinite(np.asarray(x))), what
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-12, atol=1e-12 * scale, err_msg=what)
+
+
+@pytest.mark.parametrize("h", [0.01, -0.03, 0.4, 2e-9])
+def test_snakeboard_step_vjp_equals_autodiff(h):
+    """The symmetric step's hand-written VJP equals JAX's VJP of the same step, for every input
+    (model parameters, step, state, both control values) at random states and cotangents, under
+    ``vmap``; ``h = 2e-9`` puts the rotation ``h xi_1`` in the exponential map's Taylor branch
+    (and 0.4 puts the steering angle's rotation well away from small). The values are the
+    step's to round-off (the same operations; XLA compiles the two programs apart: 1 ulp)."""
+    from ldap_jax.systems._snakeboard import _symmetric_step
+
+    sb = lj.Snakeboard(m=1.3, l=0.45, I=0.06, J=0.025)
+    rng = np.random.default_rng(7)
+    n = 16
+    q = rng.normal(size=(n, 5))
+    q[:, 4] = rng.uniform(-1.2, 1.2, n)
+    pu, mu = rng.normal(size=(n, 2)) * 0.3, rng.normal(size=(n, 3))
+    state = jax.vmap(sb.kernel_init)(jnp.asarray(q), jnp.asarray(pu), jnp.asarray(mu))
+    c0, c1 = jnp.asarray(rng.normal(size=(n, 2))), jnp.asarray(rng.normal(size=(n, 2)))
+    hs = jnp.full((n,), h)
+
+    def plain(system, h, st, a, b):
+        return system.kernel_step(0.5, h, "exp", st, a, b)[0]
+
+    def custom(system, h, st, a, b):
+        return _symmetric_step(system, h, st, a, b)[0]
+
+    def vjp(f, ct):
+        def one(h, st, a, b, ct):
+            out, pull = jax.vjp(f, sb, h, st, a, b)
+            return out, pull(ct)
+
+        return jax.jit(jax.vmap(one))(hs, state, c0, c1, ct)
+
+    out = jax.jit(jax.vmap(lambda *x: plain(sb, *x)))(hs, state, c0, c1)
+    ct = jax.tree_util.tree_map(lambda x: jnp.asarray(rng.normal(size=x.shape)), out)
+    (o1, g1), (o2, g2) = vjp(plain, ct), vjp(custom, ct)
+    for x, y in zip(jax.tree_util.tree_leaves(o1), jax.tree_util.tree_leaves(o2)):
+        np.testing.assert_allclose(x, y, rtol=1e-15, atol=1e-15)
+    _leaves_close(g2, g1, f"h={h}")
+    if h == 2e-9:  # the Taylor branch was taken
+        w = jax.vmap(lambda st, a, b: sb._step_parts(0.5, h, "exp", st, a, b)[3]["c"])(state, c0, c1)
+        assert float(jnp.max(jnp.abs(h * w))) < float(jnp.finfo(jnp.float64).eps) ** 0.25
+
+
+def _snakeboard_losses(system, q0, qdot0, ctl, t_final, mask):
+    """A batched loss on the final and a middle node; ``mask``: failed members left out with a
+    double ``where``."""
+
+    def one(q0, qdot0, ctl):
+        traj = lj.simulate(system, q0, qdot0, ctl, t_final=t_final, n_steps=200, check_constraints=False)
+        loss = jnp.sum(traj.q[-1] ** 2) + jnp.sum(traj.qdot[100] ** 2)
+        if mask:
+            return jnp.where(traj.failed, 0.0, jnp.where(traj.failed, 0.0, loss))
+        return loss
+
+    return jnp.sum(jax.vmap(one)(q0, qdot0, ctl))
+
+
+def test_snakeboard_rollout_gradient_with_the_hand_written_vjp():
+    """Through ``simulate``: the rollout runs the hand-written VJPs (the step's and the sampler's),
+    and its gradients in the model parameters, initial states, controls and ``t_final`` equal those
+    of JAX's own derivatives of the step and the sampler (to 1e-12), for random maneuvers and, with
+    a member that fails (``singular``) left out by a double ``where``, for the healthy members
+    (finite); a loss that reads the failed member gets NaN in both."""
+    sb = lj.Snakeboard()
+    ad = _AutodiffSnakeboard()
+    q0, qdot0, ctl = maneuvers(sb, 3, seed=11)
+    fq0, fqdot0, fctl = FAILURE_BATCH
+    batch = jax.tree_util.tree_map(
+        lambda a, b: jnp.concatenate([a, b]), (q0, qdot0, ctl), (fq0, fqdot0, fctl)
+    )
+    # the hand-written VJPs are what the rollout runs (and the reference does not)
+    jaxpr = str(jax.make_jaxpr(lambda c: _snakeboard_losses(sb, q0, qdot0, c, 4.0, False))(ctl))
+    assert "_symmetric_step" in jaxpr and "_sinusoid_term" in jaxpr
+    jaxpr = str(
+        jax.make_jaxpr(lambda c: _snakeboard_losses(ad, q0, qdot0, c, 4.0, False))(_autodiff_controls(ctl))
+    )
+    assert "_symmetric_step" not in jaxpr and "_sinusoid_term" not in jaxpr
+
+    grad = eqx.filter_jit(jax.grad(_snakeboard_losses, argnums=(0, 1, 2, 3, 4)))
+
+    def both(a, b, c, mask):
+        mine = grad(sb, a, b, c, jnp.asarray(6.0), mask)
+        ref = grad(ad, a, b, _autodiff_controls(c), jnp.asarray(6.0), mask)
+        return mine, ref
+
+    _leaves_close(*both(q0, qdot0, ctl, False), "random maneuvers")
+    traj = jax.vmap(lambda a, b, c: lj.simulate(sb, a, b, c, t_final=6.0, n_steps=200))(*batch)
+    assert (code(traj.result)[:4] == code(lj.RESULTS.successful)).all()
+    assert code(traj.result)[4] == code(lj.RESULTS.singular)
+    # the failed member masked out: the healthy members' gradients (their own inputs) are finite and
+    # equal; a loss reading the failed member: NaN where JAX's own derivative gives NaN
+    for mask in (True, False):
+        mine, ref = both(*batch, mask)
+        if mask:
+            healthy = jax.tree_util.tree_map(lambda x: x[:4], (mine[1:4], ref[1:4]))
+            _leaves_close(*healthy, "masked")
+        for x, y in zip(jax.tree_util.tree_leaves(mine), jax.tree_util.tree_leaves(ref)):
+            np.testing.assert_array_equal(np.isnan(np.asarray(x)), np.isnan(np.asarray(y)))
+    read = mine
+    assert np.isnan(np.asarray(read[3].amplitude)[4]).all()

@@ -128,6 +128,10 @@ class RDP(AbstractAlphaIntegrator):
     dtau_order: int | None = eqx.field(default=1, static=True)
     solver: Literal["auto", "newton"] = eqx.field(default="auto", static=True)
     newton_iterations: int = eqx.field(default=20, static=True)
+    #: Set by the rollout of a program not differentiated in forward mode: the closed-form kernels
+    #: then run :meth:`~ldap_jax.systems.AbstractClosedFormSystem.kernel_step_reverse` (a
+    #: hand-written VJP, no forward mode). Not a setting: the values are the same.
+    reverse_only: bool = eqx.field(default=False, static=True, repr=False)
 
     def __post_init__(self):
         a = concrete_float(self.alpha)
@@ -252,9 +256,8 @@ class RDP(AbstractAlphaIntegrator):
         """One RDP step of size ``h`` with control values ``c0`` at its start, ``c1`` at its end."""
         if self.uses_kernel(system):
             dtype = jnp.result_type(h)
-            new, residual, singular = system.kernel_step(
-                self._alpha(dtype), h, self.retraction, state, c0, c1
-            )
+            kernel_step = system.kernel_step_reverse if self.reverse_only else system.kernel_step
+            new, residual, singular = kernel_step(self._alpha(dtype), h, self.retraction, state, c0, c1)
             # an explicit step has nothing to converge; its residual is a diagnostic only
             result = classify(finite(new), singular, jnp.ones((), bool))
             return new, StepInfo(result=result, residual=residual, iterations=jnp.zeros((), jnp.int32))

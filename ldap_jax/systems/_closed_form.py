@@ -53,6 +53,15 @@ class AbstractClosedFormSystem(AbstractSystem):
             whether the step reached or crossed a singularity.
         """
 
+    def kernel_step_reverse(
+        self, alpha: Any, h: Array, retraction: str, state: Any, c0: Array, c1: Array
+    ) -> tuple[Any, Array, Array]:
+        """:meth:`kernel_step` for a program differentiated in reverse mode only (the rollout of
+        :func:`~ldap_jax.simulate` outside forward mode). A kernel may give it a hand-written VJP
+        (``jax.custom_vjp``: no forward mode), equal to the derivative of :meth:`kernel_step`;
+        its residual, a diagnostic, then has no derivative. Default: :meth:`kernel_step`."""
+        return self.kernel_step(alpha, h, retraction, state, c0, c1)
+
     @abc.abstractmethod
     def kernel_observe(self, state: Any, c: Array) -> Observation:
         """The node's :class:`Observation`, with controls ``c`` at the node's time."""

@@ -5,11 +5,13 @@ from __future__ import annotations
 from typing import ClassVar, NamedTuple
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
-from .._numerics import materialise, saved, sincos
+from .._numerics import materialise, plain_active, saved, sincos
 from ..lie._scalar import Pose, body_to_qdot, dtau1_transpose, pose_from_xy_theta, pose_retract
+from ..lie._se2 import exp_translation, small_angle
 from ._base import physical_parameter, positive_checks, random_draws
 from ._closed_form import AbstractClosedFormSystem
 
@@ -90,6 +92,17 @@ class Snakeboard(AbstractClosedFormSystem):
             + self.m * self.l**2 * xi[0] ** 2
             + self.m * (xi[1] ** 2 + xi[2] ** 2)
         )
+
+    def reduced_energy(self, r, u, xi):
+        """``E = l`` (the reduced Lagrangian is the kinetic energy), written out: the general
+        ``<d_u l, u> + <d_xi l, xi> - l`` by autodiff left a dot product of its own in every
+        node's observation."""
+        return self.reduced_lagrangian(r, u, xi)
+
+    def power(self, f, rdot):
+        """``<f, rdot> = f_psi psidot + f_phi phidot``, written out (a dot product was a kernel
+        of its own in every node's observation)."""
+        return f[0] * rdot[0] + f[1] * rdot[1]
 
     def connection(self, r):
         phi = r[1]
@@ -222,6 +235,17 @@ class Snakeboard(AbstractClosedFormSystem):
         ``u^phi = b_phi / (2 J)``, then the 2 x 2 solve of :meth:`_solve` at ``phi_a``; the incoming
         momenta of the next node are ``pu = d_u l + h alpha f_{k+alpha}`` (``d_r l = 0``) and
         ``mu = (I + ad_{h xi} / 2)^T d_xi l``."""
+        return self._step_parts(alpha, h, retraction, state, c0, c1)[:3]
+
+    def kernel_step_reverse(self, alpha, h, retraction, state, c0, c1):
+        """:meth:`kernel_step` with a hand-written VJP (:func:`_symmetric_step`) for the
+        symmetric step (``alpha = 1/2``, a Python float) with the exponential map."""
+        if isinstance(alpha, float) and alpha == 0.5 and retraction == "exp" and not plain_active():
+            return _symmetric_step(self, h, state, c0, c1)
+        return self.kernel_step(alpha, h, retraction, state, c0, c1)
+
+    def _step_parts(self, alpha, h, retraction, state, c0, c1):
+        """:meth:`kernel_step` and the intermediate values its VJP reads."""
         a = alpha
         m, l, inertia, jj = self.m, self.l, self.I, self.J
         ml2 = m * l**2
@@ -230,6 +254,7 @@ class Snakeboard(AbstractClosedFormSystem):
         b = (state.pu[0] + h * (1 - a) * fa[0], state.pu[1] + h * (1 - a) * fa[1])
         u_phi = b[1] / (2 * jj)
         phi_next = state.phi + h * u_phi
+        sd = cd = None
         if isinstance(a, float) and a == 0.0:  # phi_a = phi_k: reuse the carried values
             sa, ca = sk, ck
             sn, cn = sincos(phi_next)
@@ -263,8 +288,13 @@ class Snakeboard(AbstractClosedFormSystem):
         scale = 1.0 + jnp.sqrt(b[0] ** 2 + b[1] ** 2) + jnp.sqrt(sum(x**2 for x in state.mu))
         residual = jnp.sqrt(hor0**2 + (dl_du[1] - b[1]) ** 2 + vert**2) / scale
         singular = (jnp.abs(cn) < jnp.finfo(cn.dtype).eps ** 0.25) | (cn * ck < 0)
+        parts = dict(sd=sd, cd=cd, sa=sa, ca=ca, u_psi=u_psi, c=c, fa=fa, u_phi=u_phi)
+        if retraction == "exp":
+            pose, parts["rotation"] = _retract_exp(state.pose, hxi)
+        else:
+            pose = pose_retract(state.pose, hxi, retraction)
         new = SnakeboardKernelState(
-            pose_retract(state.pose, hxi, retraction),
+            pose,
             state.psi + h * u_psi,
             phi_next,
             cn,
@@ -272,7 +302,7 @@ class Snakeboard(AbstractClosedFormSystem):
             (dl_du[0] + h * a * fa[0], dl_du[1] + h * a * fa[1]),
             dtau1_transpose(hxi, mu_new, -1.0),
         )
-        return new, residual, singular
+        return new, residual, singular, parts
 
     def _kernel_velocity(self, state):
         """Configuration, velocities ``(u, xi)`` from the carried momenta (:meth:`_solve` at
@@ -306,3 +336,157 @@ class Snakeboard(AbstractClosedFormSystem):
     def kernel_node(self, state, c):
         q, u, xi, _ = self._kernel_velocity(state)
         return q, body_to_qdot(state.pose, u, xi)
+
+
+def _retract_exp(g: Pose, v: tuple[Array, Array, Array]) -> tuple[Pose, tuple[Array, Array]]:
+    """``pose_retract(g, v, "exp")`` (the same operations), and the ``(sin w, cos w)`` of its safe
+    angle, which the VJP of :func:`_symmetric_step` reads."""
+    w, v2, v3 = v
+    _, ws = small_angle(w)
+    sw, cw = saved(*materialise(*sincos(ws)))
+    dx, dy = exp_translation(w, v2, v3, sw, cw)
+    small = jnp.abs(w) < jnp.finfo(w.dtype).eps ** 0.25
+    cr = jnp.where(small, 1.0 - w**2 / 2.0 + w**4 / 24.0, cw)
+    sr = jnp.where(small, w - w**3 / 6.0 + w**5 / 120.0, sw)
+    c, s = g.cos, g.sin
+    pose = Pose(g.x + c * dx - s * dy, g.y + s * dx + c * dy, g.theta + w, c * cr - s * sr, s * cr + c * sr)
+    return pose, (sw, cw)
+
+
+@jax.custom_vjp
+def _symmetric_step(system: Snakeboard, h: Array, state: SnakeboardKernelState, c0: Array, c1: Array):
+    """``system.kernel_step(0.5, h, "exp", state, c0, c1)`` with a hand-written VJP.
+
+    The VJP is the transpose of the step's derivative written out (the solve of
+    :meth:`Snakeboard._solve` by its adjoint, the rotations of the steering angle's cosine and sine,
+    the exponential map with its Taylor branch), reading the step's sines and cosines, ``u^psi``
+    and ``c`` from the forward pass: no cotangent sums over broadcast shapes, nothing of the step
+    recomputed but a few products and one division. The derivatives with respect to the model's
+    parameters and the step size come from JAX's own VJP of :meth:`Snakeboard.kernel_step`
+    (computed only when a loss asks for them). The residual, a diagnostic, has no derivative.
+    """
+    return system.kernel_step(0.5, h, "exp", state, c0, c1)
+
+
+def _symmetric_fwd(system, h, state, c0, c1):
+    new, residual, singular, p = system._step_parts(0.5, h, "exp", state, c0, c1)
+    sw, cw = p["rotation"]
+    sd, cd, u_psi, c = saved(p["sd"], p["cd"], p["u_psi"], p["c"])
+    return (new, residual, singular), (system, h, state, c0, c1, sd, cd, p["sa"], p["ca"], u_psi, c, sw, cw)
+
+
+def _symmetric_bwd(res, ct):
+    system, h, state, c0, c1, sd, cd, sa, ca, u_psi, cc, sw0, cw0 = res
+    nb = ct[0]
+    m, l, inertia, jj = system.m, system.l, system.I, system.J
+    ml2 = m * l**2
+    ck, sk = state.cos_phi, state.sin_phi
+    mu0, mu1 = state.mu[0], state.mu[1]
+    g = state.pose
+    # forward values rebuilt from the saved ones
+    xi0 = cc * 2 * sa * ca
+    xi1 = -2 * l * ca**2 * cc
+    w, v2 = h * xi0, h * xi1
+    n2 = m * xi1
+    small = jnp.abs(w) < jnp.finfo(w.dtype).eps ** 0.25
+    ws = jnp.where(small, jnp.ones_like(w), w)
+    big_a, big_b = sw0 / ws, (1.0 - cw0) / ws
+    ta = jnp.where(small, 1.0 - w**2 / 6.0 + w**4 / 120.0, big_a)
+    tb = jnp.where(small, w / 2.0 - w**3 / 24.0 + w**5 / 720.0, big_b)
+    cr = jnp.where(small, 1.0 - w**2 / 2.0 + w**4 / 24.0, cw0)
+    sr = jnp.where(small, w - w**3 / 6.0 + w**5 / 120.0, sw0)
+    dx, dy = ta * v2, tb * v2
+    # the next state's incoming momenta mu = (n1, n2, -w n2 / 2) and pu
+    pb0, pb1 = nb.pu
+    mb0, mb1, mb2 = nb.mu
+    n1b = mb0
+    n2b = mb1 - 0.5 * w * mb2
+    wb = -0.5 * n2 * mb2 + nb.pose.theta
+    u_psib = inertia * pb0 + h * nb.psi + inertia * n1b
+    xi0b = inertia * pb0 + ml2 * n1b
+    u_phib = 2 * jj * pb1 + h * nb.phi
+    xi1b = m * n2b
+    # the exponential map: g' = g exp(w, v2, 0)
+    pxb, pyb, pcb, psb = nb.pose.x, nb.pose.y, nb.pose.cos, nb.pose.sin
+    c, s = g.cos, g.sin
+    g_cb = pxb * dx + pyb * dy + pcb * cr + psb * sr
+    g_sb = -pxb * dy + pyb * dx - pcb * sr + psb * cr
+    dxb = pxb * c + pyb * s
+    dyb = -pxb * s + pyb * c
+    crb = pcb * c + psb * s
+    srb = -pcb * s + psb * c
+    v2b = dxb * ta + dyb * tb
+    tab, tbb = dxb * v2, dyb * v2
+    w_small = (
+        tab * (-w / 3.0 + w**3 / 30.0)
+        + tbb * (0.5 - w**2 / 8.0 + w**4 / 144.0)
+        + crb * (-w + w**3 / 6.0)
+        + srb * (1.0 - w**2 / 2.0 + w**4 / 24.0)
+    )
+    sw0b = tab / ws + srb
+    cw0b = -tbb / ws + crb
+    w_big = -tab * big_a / ws - tbb * big_b / ws + cw0 * sw0b - sw0 * cw0b
+    wb = wb + jnp.where(small, w_small, w_big)
+    # a division by a runtime 1 marks a value "expensive" for XLA's fusion pass, which then computes
+    # it once instead of fusing the chain that makes it into every consumer
+    one = jax.lax.stop_gradient(w) * 0 + 1
+    wb, v2b = wb / one, v2b / one
+    xi0b = xi0b + h * wb
+    xi1b = xi1b + h * v2b
+    # xi = (c sin 2phi_a, -2 l cos^2 phi_a c, 0)
+    ccb = 2 * sa * ca * xi0b - 2 * l * ca**2 * xi1b
+    sab = 2 * cc * ca * xi0b
+    cab = 2 * cc * sa * xi0b - 4 * l * ca * cc * xi1b
+    # the solve: det (u^psi, c) = (ml2 kappa b0 / I - s2a nu, nu - s2k b0)
+    s2a, s2k = 2 * sa * ca, 2 * sk * ck
+    gk = ca * ck + sa * sk
+    kappa = 4 * ca * ck * gk
+    b1_ = u_psi + s2a * cc  # b_psi / I, the solve's first row (the controls are not read back)
+    nu = mu0 * (2 * sk * ck) + mu1 * (-2 * l * ck**2)
+    det = ml2 * kappa - inertia * s2k * s2a
+    ub, cb = u_psib / det, ccb / det
+    detb = -(ub * u_psi + cb * cc)
+    kappab = ml2 * (b1_ * ub + detb)
+    b0b = (ml2 * kappa * ub - inertia * s2k * cb) / inertia
+    s2ab = -nu * ub - inertia * s2k * detb
+    nub = cb - s2a * ub
+    s2kb = -inertia * (b1_ * cb + s2a * detb)
+    k4 = 4 * kappab
+    cab = cab + k4 * ck * (gk + ca * ck) + 2 * sa * s2ab
+    sab = sab + k4 * ca * ck * sk + 2 * ca * s2ab
+    ckb = k4 * ca * (gk + ca * ck) + 2 * sk * s2kb + nub * (2 * sk * mu0 - 4 * l * ck * mu1)
+    skb = k4 * ca * ck * sa + 2 * ck * s2kb + nub * 2 * ck * mu0
+    sab, cab, skb, ckb = sab / one, cab / one, skb / one, ckb / one
+    # phi_a and phi_{k+1}: (sa, ca) = (sk, ck) turned by d, (sn, cn) = (sa, ca) turned by d, renormalised
+    sn_, cn_ = sa * cd + ca * sd, ca * cd - sa * sd
+    unit = 1.5 - 0.5 * (sn_ * sn_ + cn_ * cn_)
+    unitb = nb.sin_phi * sn_ + nb.cos_phi * cn_
+    snb = nb.sin_phi * unit - unitb * sn_
+    cnb = nb.cos_phi * unit - unitb * cn_
+    sab = sab + snb * cd - cnb * sd
+    cab = cab + snb * sd + cnb * cd
+    cdb = snb * sa + cnb * ca + sab * sk + cab * ck
+    sdb = snb * ca - cnb * sa + sab * ck - cab * sk
+    skb = skb + sab * cd - cab * sd
+    ckb = ckb + sab * sd + cab * cd
+    u_phib = u_phib + 0.5 * h * (sdb * cd - cdb * sd)
+    b1b = u_phib / (2 * jj)
+    fa0b, fa1b = 0.5 * h * (pb0 + b0b), 0.5 * h * (pb1 + b1b)
+    zero = jnp.zeros_like(mb2)
+    state_b = SnakeboardKernelState(
+        Pose(pxb, pyb, nb.pose.theta, g_cb, g_sb),
+        nb.psi,
+        nb.phi,
+        ckb,
+        skb,
+        (b0b, b1b),
+        (nub * 2 * sk * ck, nub * (-2 * l * ck**2), zero),
+    )
+    c_b = jnp.stack([0.5 * fa0b, 0.5 * fa1b])
+    # the model's parameters and the step size: JAX's own VJP (dropped by XLA when not asked for)
+    _, pull = jax.vjp(lambda sys, hh: sys.kernel_step(0.5, hh, "exp", state, c0, c1)[0], system, h)
+    system_b, h_b = pull(nb)
+    return system_b, h_b, state_b, c_b, c_b
+
+
+_symmetric_step.defvjp(_symmetric_fwd, _symmetric_bwd)
