@@ -24,6 +24,7 @@ from collections.abc import Callable
 from typing import Any
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
@@ -140,7 +141,11 @@ class NetDisplacement(AbstractTerminalConstraint):
         if not given:
             raise ValueError("NetDisplacement: give at least one of 'dx', 'dy', 'dtheta'")
         self.components = tuple(i for i, _ in given)
-        self.target = jnp.stack([jnp.asarray(x, jnp.result_type(float)) for _, x in given])
+        real = jnp.result_type(float)
+        if any(isinstance(x, jax.core.Tracer) for _, x in given):
+            self.target = jnp.stack([jnp.asarray(x, real) for _, x in given])
+        else:  # known values on the host (an eager stack is a compilation in a new process)
+            self.target = asarray(np.stack([np.asarray(x, real) for _, x in given]))
         if self.target.ndim != 1:
             raise ValueError(f"NetDisplacement: each target must be a scalar, got shape {self.target.shape}")
         self.weight = asarray(weight)
