@@ -46,6 +46,7 @@ __all__ = [
     "FAST_COMPILE_OPTIONS",
     "compiler_options",
     "jit",
+    "asarray",
 ]
 
 #: XLA compile options for the library's programs (:func:`jit`), each measured on 2 CPU cores:
@@ -220,9 +221,31 @@ def enable_compilation_cache(
     return path
 
 
+def asarray(x: Any, dtype: Any = None) -> jax.Array:
+    """``jnp.asarray(x, dtype)`` (the same dtype, weak type and errors) without an eager JAX
+    operation for a value on the host (a Python number, a list, a NumPy array): that is copied to
+    the device (``jax.device_put``), where ``jnp.asarray`` (JAX 0.10) runs a one-operation program
+    that each new process compiles (``stage``, ``convert_element_type``: 5-60 ms each, the first
+    0.15 s). JAX arrays and tracers go to ``jnp.asarray``."""
+    import jax.numpy as jnp
+
+    if x is None or isinstance(x, (jax.Array, jax.core.Tracer, np.ma.MaskedArray)):
+        return jnp.asarray(x, dtype)
+    try:
+        a = np.asarray(x, dtype)
+    except (TypeError, ValueError, OverflowError):
+        return jnp.asarray(x, dtype)  # its own error
+    if a.dtype.kind not in "buifc" or (a.dtype.kind in "ui" and not jax.config.jax_enable_x64):
+        return jnp.asarray(x, dtype)  # its own error (or its overflow check into 32 bits)
+    if dtype is None and isinstance(x, (int, float, complex)) and not isinstance(x, bool):
+        return jax.device_put(x)  # a weakly typed scalar, as jnp.asarray makes it
+    return jax.device_put(a)
+
+
 def compiler_options() -> dict[str, Any] | None:
     """The XLA compile options of the library's programs: those of :data:`FAST_COMPILE_OPTIONS`
-    that this XLA knows (each checked once, by compiling a one-operation program), or ``None``
+    that this XLA knows (each checked once, by compiling a one-operation program; with the
+    persistent cache on, once per cache directory and JAX version: :data:`PROBE_FILE`), or ``None``
     (XLA's defaults) if ``LDAP_JAX_FAST_COMPILE=0`` or it knows none of them.
 
     Pass them to your own ``jax.jit`` to compile a rollout as fast as the library does:
@@ -235,15 +258,60 @@ def compiler_options() -> dict[str, Any] | None:
     if _options is _UNSET:
         known = {}
         if os.environ.get("LDAP_JAX_FAST_COMPILE", "1").strip() not in ("0", "false", "False"):
-            for key, value in FAST_COMPILE_OPTIONS.items():
-                try:
-                    probe = jax.jit(lambda x: x + 1, compiler_options={key: value})
-                    probe.lower(np.float32(0)).compile()
-                    known[key] = value
-                except Exception:  # pragma: no cover - an XLA without this option
-                    pass
+            names = _probed_options()
+            known = {key: FAST_COMPILE_OPTIONS[key] for key in names}
         _options = known or None
     return None if _options is None else dict(_options)
+
+
+#: the file in the persistent compilation cache's directory that keeps :func:`compiler_options`'
+#: probe results, per JAX version, backend and option set
+PROBE_FILE = "ldap_jax_compiler_options.json"
+
+
+def _probed_options() -> list[str]:
+    """The names of :data:`FAST_COMPILE_OPTIONS` this XLA accepts, each found by compiling a
+    one-operation program with it; with the persistent compilation cache on, the answer is kept in
+    :data:`PROBE_FILE` next to the cache (keyed by the versions of JAX and jaxlib, the backend and
+    the options), so a new process does not compile the probes again (two compilations, 50-60 ms)."""
+    import json
+
+    import jaxlib
+
+    key = (
+        f"jax {jax.__version__} jaxlib {jaxlib.__version__} backend {jax.default_backend()} "
+        f"options {sorted(FAST_COMPILE_OPTIONS.items())!r}"
+    )
+    root = jax.config.jax_compilation_cache_dir
+    path = os.path.join(root, PROBE_FILE) if root else None
+    stored: dict = {}
+    if path is not None:
+        try:
+            with open(path) as f:
+                stored = json.load(f)
+            names = stored[key]
+            if isinstance(names, list) and all(name in FAST_COMPILE_OPTIONS for name in names):
+                return names
+        except (OSError, ValueError, KeyError, TypeError):
+            stored = stored if isinstance(stored, dict) else {}
+    names = []
+    for name, value in FAST_COMPILE_OPTIONS.items():
+        try:
+            probe = jax.jit(lambda x: x + 1, compiler_options={name: value})
+            probe.lower(np.float32(0)).compile()
+            names.append(name)
+        except Exception:  # pragma: no cover - an XLA without this option
+            pass
+    if path is not None:
+        try:  # written whole, then renamed: a reader never sees half a file
+            os.makedirs(root, exist_ok=True)
+            tmp = f"{path}.{os.getpid()}.tmp"
+            with open(tmp, "w") as f:
+                json.dump({**stored, key: names}, f)
+            os.replace(tmp, path)
+        except OSError:  # pragma: no cover - a read-only cache: probe again next time
+            pass
+    return names
 
 
 def _traced(args: Any) -> bool:

@@ -17,7 +17,10 @@ first process is cold and the later ones warm; ``--cache DIR`` to keep it) and t
   lowering to StableHLO, XLA compilation, persistent-cache reads, summed per program name.
 
 With ``--no-export`` the child sets ``LDAP_JAX_EXPORT=0`` (``lc.solve`` then never uses an
-exported program). Prints a table; ``--json FILE`` writes the numbers.
+exported program). Prints a table; ``--json FILE`` writes the numbers. The children inherit the
+environment: with ``PYTHONDONTWRITEBYTECODE=1`` every module a warm solve imports first (jaxlib's
+MLIR dialects, for lowering the exported programs) is compiled from source in each process (about
+0.1 s, which a user's Python caches).
 """
 
 from __future__ import annotations

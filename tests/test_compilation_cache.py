@@ -82,3 +82,77 @@ def test_compiler_options_top_level_and_nested(monkeypatch):
     monkeypatch.setattr(cc, "_options", cc._UNSET)
     monkeypatch.setenv("LDAP_JAX_FAST_COMPILE", "0")
     assert lj.compiler_options() is None
+
+
+@pytest.mark.parametrize(
+    "x",
+    [1.0, 3, True, 1 + 2j, np.float32(0.3), np.array([1.0, 2.0]), [1.0, 2.0], [1, 2], (0.5, 2), np.array(2)],
+    ids=repr,
+)
+@pytest.mark.parametrize("dtype", [None, float, jnp.float32])
+def test_asarray_is_jnp_asarray_without_a_program(x, dtype):
+    """The library's ``asarray`` gives what ``jnp.asarray`` gives (dtype, weak type, values) and
+    runs no eager JAX operation on a host value (``jnp.asarray`` compiles one in this JAX)."""
+    from jax._src import core
+
+    from ldap_jax._compilation_cache import asarray
+
+    try:
+        expected = jnp.asarray(x, dtype)
+    except TypeError:  # a complex number as a real dtype: the same error
+        with pytest.raises(TypeError):
+            asarray(x, dtype)
+        return
+    ops = []
+    run = core.EvalTrace.process_primitive
+
+    def counted(self, primitive, args, params):
+        ops.append(primitive.name)
+        return run(self, primitive, args, params)
+
+    core.EvalTrace.process_primitive = counted
+    try:
+        got = asarray(x, dtype)
+    finally:
+        core.EvalTrace.process_primitive = run
+    assert ops == []
+    assert isinstance(got, jax.Array) and got.dtype == expected.dtype and got.shape == expected.shape
+    assert got.aval.weak_type == expected.aval.weak_type
+    np.testing.assert_array_equal(np.asarray(got), np.asarray(expected))
+
+
+def test_asarray_errors_and_tracers_are_jnp_asarrays():
+    from ldap_jax._compilation_cache import asarray
+
+    for bad in (None, "a", [1, [2]]):
+        with pytest.raises((TypeError, ValueError)):
+            jnp.asarray(bad, float)
+        with pytest.raises((TypeError, ValueError)):
+            asarray(bad, float)
+    assert jax.jit(lambda t: asarray(t, jnp.float32).dtype == jnp.float32)(1.0)
+
+
+def test_compiler_options_probe_is_kept_next_to_the_compilation_cache(monkeypatch, tmp_path):
+    """With a compilation cache directory the probe's answer is written there once; a new
+    process (here: the module's state reset) reads it and compiles no probe."""
+    from helpers import compiled_programs
+
+    from ldap_jax import _compilation_cache as cc
+
+    monkeypatch.setattr(cc, "_options", cc._UNSET)
+    old = jax.config.jax_compilation_cache_dir
+    jax.config.update("jax_compilation_cache_dir", str(tmp_path))
+    try:
+        with compiled_programs("trace") as first:
+            assert lj.compiler_options() == cc.FAST_COMPILE_OPTIONS
+        assert first == ["<lambda>"] * 2  # the two probes
+        assert (tmp_path / cc.PROBE_FILE).is_file()
+        monkeypatch.setattr(cc, "_options", cc._UNSET)
+        with compiled_programs("trace") as again:
+            assert lj.compiler_options() == cc.FAST_COMPILE_OPTIONS
+        assert again == []
+        (tmp_path / cc.PROBE_FILE).write_text("{not json")  # a damaged file: probed again
+        monkeypatch.setattr(cc, "_options", cc._UNSET)
+        assert lj.compiler_options() == cc.FAST_COMPILE_OPTIONS
+    finally:
+        jax.config.update("jax_compilation_cache_dir", old)

@@ -859,3 +859,46 @@ def test_eager_vmapped_solve_traces_the_solver_once(small_park, vmapped_park):
     assert not names, names
     assert np.all(np.asarray(again.converged)[:3])
     assert np.max(np.abs(np.asarray(again.params)[0] - np.asarray(first.params)[0])) > 1e-4  # a new goal
+
+
+# ----------------------------------------------------------------------- a new process's first solve
+def test_task_construction_and_solve_setup_run_no_eager_operation():
+    """``lc.parallel_park()`` (its car's parameter checks, its value checks) and ``lc.solve``'s
+    set-up (the default guess, the options, the solver's view) run no eager JAX operation on its
+    known values: in a new process each would compile a program of its own. The guess made on
+    the host equals the compiled one."""
+    from jax._src import core
+
+    from ldap_jax.control._solve import _checked, _solver_view
+    from ldap_jax.control._task import _initial_guess
+
+    ops = []
+    run = core.EvalTrace.process_primitive
+
+    def counted(self, primitive, args, params):
+        ops.append(primitive.name)
+        return run(self, primitive, args, params)
+
+    core.EvalTrace.process_primitive = counted
+    try:
+        task = lc.parallel_park()
+        _, params0, _ = _checked(task, None, 1e-8, 1000, "base", 0.1, None)
+        _solver_view(task)
+    finally:
+        core.EvalTrace.process_primitive = run
+    assert ops == []
+    np.testing.assert_allclose(params0, _initial_guess(task, None, task.guess.amplitude), rtol=0, atol=1e-15)
+    assert params0.dtype == jnp.float64 and params0.shape == (101, 2)
+    # the checks still stop bad values
+    with pytest.raises(ValueError, match="'m'"):
+        lc.parallel_park(lj.Car(m=-1.0))
+    with pytest.raises(ValueError, match="'qdot0' violates the constraints"):
+        lc.make_task(
+            lj.Car(),
+            t_final=1.0,
+            n_steps=10,
+            q0=np.zeros(5),
+            qdot0=np.array([0.0, 1.0, 0, 0, 0]),
+            objective=(lc.Effort(np.ones(2)),),
+            constraints=(),
+        )

@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._compilation_cache import asarray
 from .._rollout import check_checkpoint
 from .._validation import check_array, check_positive_int, check_scalar, is_concrete, known_initial_violation
 from ..integrators import RDP, AbstractIntegrator
@@ -95,7 +96,7 @@ def make_task(
     objective, constraints = tuple(objective), tuple(constraints)
     periodic = [c for c in constraints if isinstance(c, Periodic)]
     n_steps = check_positive_int("n_steps", n_steps)
-    t_final = jnp.asarray(check_scalar("t_final", t_final), float)
+    t_final = asarray(check_scalar("t_final", t_final), float)
     _check_concrete_positive("t_final", t_final)
     d, m = system.n_config, system.n_controls
     context = f"for {type(system).__name__}"
@@ -119,7 +120,7 @@ def make_task(
     bounds = _check_bounds(bounds, d, m, context)
     controls = SampledControls(t_final, n_steps, np.ones(m)) if controls is None else controls
     _check_controls(controls, system, n_steps, t_final)
-    objective_weight = jnp.asarray(check_scalar("objective_weight", objective_weight), float)
+    objective_weight = asarray(check_scalar("objective_weight", objective_weight), float)
     if is_concrete(objective_weight) and not (
         np.isfinite(float(objective_weight)) and float(objective_weight) >= 0
     ):

@@ -24,10 +24,12 @@ from collections.abc import Callable
 from typing import Any
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from .._compilation_cache import asarray
 from .._typing import ArrayLike
 from ._terms import bound_penalty, displacement, pose_error
 
@@ -85,9 +87,9 @@ class TerminalPose(AbstractTerminalConstraint):
     """The pose at ``t_N`` equals ``goal = (x, y, theta)``: ``log(g_goal^-1 g_N) = 0``
     (:func:`pose_error`). Penalty: ``w_heading e_1^2 + w_position (e_2^2 + e_3^2)``."""
 
-    goal: Float[Array, " 3"] = eqx.field(converter=jnp.asarray)
-    w_heading: Array = eqx.field(default=1.0, converter=jnp.asarray)
-    w_position: Array = eqx.field(default=1.0, converter=jnp.asarray)
+    goal: Float[Array, " 3"] = eqx.field(converter=asarray)
+    w_heading: Array = eqx.field(default=1.0, converter=asarray)
+    w_position: Array = eqx.field(default=1.0, converter=asarray)
 
     @property
     def weight(self) -> Array:  # type: ignore[override]
@@ -110,7 +112,7 @@ class TerminalRest(AbstractTerminalConstraint):
     ``s``, ``(2,)``)."""
 
     indices: tuple[int, ...] = eqx.field(static=True)
-    weight: Array = eqx.field(default=1.0, converter=jnp.asarray)
+    weight: Array = eqx.field(default=1.0, converter=asarray)
 
     def residual(self, system, obs, q0=None):
         v = system.velocities_from_qdot(obs.q, obs.qdot)
@@ -132,17 +134,21 @@ class NetDisplacement(AbstractTerminalConstraint):
 
     target: Float[Array, " k"]
     components: tuple[int, ...] = eqx.field(static=True)
-    weight: Array = eqx.field(default=1.0, converter=jnp.asarray)
+    weight: Array = eqx.field(default=1.0, converter=asarray)
 
     def __init__(self, dx=None, dy=None, dtheta=None, *, weight: ArrayLike = 1.0):
         given = [(i, x) for i, x in enumerate((dx, dy, dtheta)) if x is not None]
         if not given:
             raise ValueError("NetDisplacement: give at least one of 'dx', 'dy', 'dtheta'")
         self.components = tuple(i for i, _ in given)
-        self.target = jnp.stack([jnp.asarray(x, jnp.result_type(float)) for _, x in given])
+        real = jnp.result_type(float)
+        if any(isinstance(x, jax.core.Tracer) for _, x in given):
+            self.target = jnp.stack([jnp.asarray(x, real) for _, x in given])
+        else:  # known values on the host (an eager stack is a compilation in a new process)
+            self.target = asarray(np.stack([np.asarray(x, real) for _, x in given]))
         if self.target.ndim != 1:
             raise ValueError(f"NetDisplacement: each target must be a scalar, got shape {self.target.shape}")
-        self.weight = jnp.asarray(weight)
+        self.weight = asarray(weight)
 
     def residual(self, system, obs, q0):
         return displacement(obs.q, q0)[jnp.asarray(self.components)] - self.target
@@ -152,7 +158,7 @@ class TerminalConstraint(AbstractTerminalConstraint):
     """A user equality ``fn(q_N, qdot_N) = 0`` at the last node (``fn`` returns a vector)."""
 
     fn: Callable
-    weight: Array = eqx.field(default=1.0, converter=jnp.asarray)
+    weight: Array = eqx.field(default=1.0, converter=asarray)
 
     def residual(self, system, obs, q0):
         return jnp.atleast_1d(self.fn(obs.q, obs.qdot))
@@ -164,7 +170,7 @@ class PathConstraint(AbstractPathConstraint):
     control bound. Held at the nodes; between them the motion is not checked."""
 
     fn: Callable
-    weight: Array = eqx.field(default=1.0, converter=jnp.asarray)
+    weight: Array = eqx.field(default=1.0, converter=asarray)
 
     def residual(self, system, t, obs, c):
         return jnp.atleast_1d(self.fn(t, obs.q, obs.qdot, c))
@@ -175,7 +181,7 @@ class InitialRest(AbstractInitialConstraint):
     a periodic gait (the snakeboard's board speed ``s``: ``(2,)``; the car's wheel rate: ``(0,)``)."""
 
     indices: tuple[int, ...] = eqx.field(static=True)
-    weight: Array = eqx.field(default=1.0, converter=jnp.asarray)
+    weight: Array = eqx.field(default=1.0, converter=asarray)
 
     def residual(self, system, obs, c):
         v = system.velocities_from_qdot(obs.q, obs.qdot)
@@ -186,7 +192,7 @@ class InitialConstraint(AbstractInitialConstraint):
     """A user equality ``fn(q_0, qdot_0, c_0) = 0`` on the (free) start."""
 
     fn: Callable
-    weight: Array = eqx.field(default=1.0, converter=jnp.asarray)
+    weight: Array = eqx.field(default=1.0, converter=asarray)
 
     def residual(self, system, obs, c):
         return jnp.atleast_1d(self.fn(obs.q, obs.qdot, c))
@@ -208,7 +214,7 @@ class Periodic(AbstractConstraint):
     """
 
     cyclic: tuple[str, ...] = eqx.field(static=True, default=())
-    weight: Array = eqx.field(default=1.0, converter=jnp.asarray)
+    weight: Array = eqx.field(default=1.0, converter=asarray)
 
 
 class Bounds(eqx.Module):
@@ -223,11 +229,11 @@ class Bounds(eqx.Module):
             penalty form: ``weight * h * (excess^2)`` summed over the nodes, controls scaled).
     """
 
-    q_lower: Float[Array, " d"] = eqx.field(converter=jnp.asarray)
-    q_upper: Float[Array, " d"] = eqx.field(converter=jnp.asarray)
-    u_lower: Float[Array, " n"] = eqx.field(converter=jnp.asarray)
-    u_upper: Float[Array, " n"] = eqx.field(converter=jnp.asarray)
-    weight: Array = eqx.field(default=100.0, converter=jnp.asarray)
+    q_lower: Float[Array, " d"] = eqx.field(converter=asarray)
+    q_upper: Float[Array, " d"] = eqx.field(converter=asarray)
+    u_lower: Float[Array, " n"] = eqx.field(converter=asarray)
+    u_upper: Float[Array, " n"] = eqx.field(converter=asarray)
+    weight: Array = eqx.field(default=100.0, converter=asarray)
 
     @classmethod
     def of(cls, system, *, q: dict | None = None, u: dict | None = None, weight: float = 100.0) -> Bounds:
@@ -240,7 +246,7 @@ class Bounds(eqx.Module):
         coords = ("x", "y", "theta", *system.shape_names)
         q_lo, q_hi = _by_name("q", q or {}, coords)
         u_lo, u_hi = _by_name("u", u or {}, tuple(system.control_names))
-        return cls(jnp.asarray(q_lo), jnp.asarray(q_hi), jnp.asarray(u_lo), jnp.asarray(u_hi), weight)
+        return cls(asarray(q_lo), asarray(q_hi), asarray(u_lo), asarray(u_hi), weight)
 
     def penalty(self, q: Array, c: Array, scale: Array, h: Array) -> Array:
         """``weight * h * (bound_penalty(q) + bound_penalty(c / scale))`` at one node."""

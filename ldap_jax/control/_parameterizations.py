@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, PRNGKeyArray
 
+from .._compilation_cache import asarray
 from .._controls import AbstractControls, Sampled, Sinusoids
 from .._typing import ArrayLike
 
@@ -50,9 +51,9 @@ class SampledControls(AbstractParameterization):
     def __init__(self, t_final: ArrayLike, n_steps: int, scale: ArrayLike, *, t0: ArrayLike = 0.0):
         if isinstance(n_steps, bool) or not isinstance(n_steps, int) or n_steps < 1:
             raise ValueError(f"SampledControls: 'n_steps' must be a positive integer, got {n_steps!r}")
-        self.t_final = jnp.asarray(t_final, float)
-        self.t0 = jnp.asarray(t0, float)
-        self.scale = jnp.asarray(scale, float)
+        self.t_final = asarray(t_final, float)
+        self.t0 = asarray(t0, float)
+        self.scale = asarray(scale, float)
         if self.scale.ndim != 1:
             raise ValueError(f"SampledControls: 'scale' must be 1-d (n_channels,), got {self.scale.shape}")
         self.n_steps = n_steps
@@ -114,7 +115,7 @@ class PeriodicControls(AbstractControls):
     """
 
     base: AbstractControls
-    period: Array = eqx.field(converter=jnp.asarray)
+    period: Array = eqx.field(converter=asarray)
     cycles: int = eqx.field(static=True, default=1)
 
     @property
@@ -162,10 +163,10 @@ class SinusoidGait(AbstractParameterization):
     ):
         if isinstance(n_terms, bool) or not isinstance(n_terms, int) or n_terms < 1:
             raise ValueError(f"SinusoidGait: 'n_terms' must be a positive integer, got {n_terms!r}")
-        self.scale = jnp.asarray(scale, float)
+        self.scale = asarray(scale, float)
         if self.scale.ndim != 1:
             raise ValueError(f"SinusoidGait: 'scale' must be 1-d (n_channels,), got {self.scale.shape}")
-        self.frequency = jnp.asarray(frequency, float)
+        self.frequency = asarray(frequency, float)
         self.n_terms = n_terms
         self.shared_frequency = shared_frequency
 

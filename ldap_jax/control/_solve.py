@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from .._compilation_cache import jit
+from .._compilation_cache import asarray, jit
 from .._discrete import discretize
 from .._numerics import plain
 from .._simulate import simulate
@@ -238,11 +238,11 @@ def _checked(task, params0, tol, max_iterations, hessian, curvature_tol, barrier
     params0, batched = _check_guess(task, params0)
     # tolerances and budget as arrays: new values must not recompile
     options = IPMOptions(
-        tol=jnp.asarray(tol, dtype),
-        max_iterations=jnp.asarray(max_iterations, jnp.int32),
+        tol=asarray(tol, dtype),
+        max_iterations=asarray(np.int32(max_iterations)),
         hessian=hessian,
-        exact_hessian_tol=jnp.asarray(curvature_tol, dtype),
-        mu0=jnp.asarray(barrier, dtype),
+        exact_hessian_tol=asarray(curvature_tol, dtype),
+        mu0=asarray(barrier, dtype),
     )
     return options, params0, batched
 
@@ -266,7 +266,7 @@ def _check_guess(task: Task, params0):
         raise ValueError(
             f"'params0' must have shape {shape} (N + 1 nodes, channels), or a batch of them, got {cshape}"
         )
-    params0 = jax.tree_util.tree_map(lambda x: jnp.asarray(x, task.bounds.q_lower.dtype), params0)
+    params0 = jax.tree_util.tree_map(lambda x: asarray(x, task.bounds.q_lower.dtype), params0)
     with jax.ensure_compile_time_eval():
         leaves = jax.tree_util.tree_leaves(params0)
         if is_concrete(leaves) and not all(bool(np.all(np.isfinite(np.asarray(x)))) for x in leaves):
@@ -283,9 +283,10 @@ def _solver_view(task: Task) -> Task:
     penalty form's weight and memory policy, and its guess settings. They are static (part of a
     compiled program's key), so without this two tasks that differ only there compiled the
     interior-point program twice."""
-    return dataclasses.replace(
-        task, name="", guess=Guess(), checkpoint=False, objective_weight=jnp.ones_like(task.objective_weight)
-    )
+    w = task.objective_weight
+    # a known weight's ones on the host: jnp.ones_like is an eager operation (a compilation)
+    ones = asarray(np.ones(np.shape(w), w.dtype)) if is_concrete(w) else jnp.ones_like(w)
+    return dataclasses.replace(task, name="", guess=Guess(), checkpoint=False, objective_weight=ones)
 
 
 def valid_task(task: Task) -> Array:

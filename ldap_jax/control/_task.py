@@ -18,9 +18,10 @@ from typing import Any, NamedTuple
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, PRNGKeyArray
 
-from .._compilation_cache import compiled_unless_staged
+from .._compilation_cache import asarray, compiled_unless_staged
 from .._discrete import discretize
 from .._simulate import Trajectory, simulate
 from ..integrators import AbstractIntegrator
@@ -67,9 +68,7 @@ class Guess(eqx.Module):
     gait: SinusoidGait | None = None
     starts: int = eqx.field(static=True, default=1)
     seed: int = eqx.field(static=True, default=0)
-    controls: Array | None = eqx.field(
-        default=None, converter=lambda x: None if x is None else jnp.asarray(x)
-    )
+    controls: Array | None = eqx.field(default=None, converter=lambda x: None if x is None else asarray(x))
 
 
 class Task(eqx.Module):
@@ -242,6 +241,10 @@ class Task(eqx.Module):
         if key is None and self.guess.starts > 1:
             keys = jax.random.split(jax.random.PRNGKey(self.guess.seed), self.guess.starts)
             return _guesses(self, keys, amplitude)
+        if key is None:
+            host = _host_guess(self, amplitude)
+            if host is not None:
+                return host
         return _initial_guess(self, key, amplitude)
 
     def with_options(self, **changes) -> Task:
@@ -256,6 +259,28 @@ class Task(eqx.Module):
         from ._build import rebuild
 
         return rebuild(self, **changes)
+
+
+def _host_guess(task: Task, amplitude: Any) -> Array | None:
+    """The deterministic default guess of per-step controls (:meth:`SampledControls.init` with
+    ``key=None``: channel ``c`` is ``amplitude * sin((c mod 3 + 1) pi t / T)``), computed with
+    NumPy; ``None`` where :func:`_initial_guess` is needed (a periodic task, a gait or explicit
+    guess, another parameterization, a traced amplitude). In a new process the compiled
+    :func:`_initial_guess` cost a trace and a cache read (20-60 ms)."""
+    p = task.parameterization
+    if (
+        task.periodic is not None
+        or task.guess.controls is not None
+        or task.guess.gait is not None
+        or type(p) is not SampledControls
+        or isinstance(amplitude, bool)
+        or not isinstance(amplitude, (int, float))
+    ):
+        return None
+    n_modes, n = 3, p.scale.shape[0]
+    s = np.linspace(0.0, 1.0, p.n_steps + 1)
+    values = np.stack([amplitude * np.sin((c % n_modes + 1) * np.pi * s) for c in range(n)], axis=1)
+    return asarray(values, jnp.result_type(float))
 
 
 @eqx.filter_jit

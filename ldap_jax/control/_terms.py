@@ -23,6 +23,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from .._compilation_cache import asarray
 from .._typing import ArrayLike
 from ..lie import SE2
 
@@ -129,8 +130,8 @@ class Effort(AbstractTerm):
         weight: the term's weight (default 1).
     """
 
-    scale: Float[Array, " n"] = eqx.field(converter=jnp.asarray)
-    weight: Array = eqx.field(default=1.0, converter=jnp.asarray)
+    scale: Float[Array, " n"] = eqx.field(converter=asarray)
+    weight: Array = eqx.field(default=1.0, converter=asarray)
 
     def interval(self, system, c0, c1, h):
         return self.weight * _interval_effort(c0 / self.scale, c1 / self.scale, h)
@@ -141,8 +142,8 @@ class Displacement(AbstractTerm):
     vector in the body frame of the initial pose (``(1, 0)``: forward, ``(0, 1)``: to the left),
     from ``q_0`` to ``q_N`` (m). For a gait, the displacement per cycle."""
 
-    direction: Float[Array, " 2"] = eqx.field(default=(1.0, 0.0), converter=jnp.asarray)
-    weight: Array = eqx.field(default=1.0, converter=jnp.asarray)
+    direction: Float[Array, " 2"] = eqx.field(default=(1.0, 0.0), converter=asarray)
+    weight: Array = eqx.field(default=1.0, converter=asarray)
 
     def terminal(self, system, obs, q0):
         d = displacement(obs.q, q0)
@@ -159,7 +160,7 @@ class Rotation(AbstractTerm):
     """``-weight * (theta_N - theta_0)``: rewards turning counter-clockwise (rad; a negative
     weight rewards clockwise turns). For a gait, the rotation per cycle."""
 
-    weight: Array = eqx.field(default=1.0, converter=jnp.asarray)
+    weight: Array = eqx.field(default=1.0, converter=asarray)
 
     def terminal(self, system, obs, q0):
         return -self.weight * (obs.q[2] - q0[2])

@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from .._compilation_cache import compiled_unless_staged
+from .._compilation_cache import asarray, compiled_unless_staged
 from .._linalg import solve
 
 __all__ = ["AbstractSystem", "Observation", "body_velocity", "spatial_velocity", "physical_parameter"]
@@ -53,13 +53,14 @@ def physical_parameter(x: Any) -> Array:
     if isinstance(x, (str, bytes)) or x is None or (isinstance(x, np.ndarray) and x.dtype.kind in "USO"):
         raise bad("a real number or an array of real numbers")
     try:
-        x = jnp.asarray(x)
+        x = asarray(x)  # a host value without an eager JAX operation
     except (TypeError, ValueError) as err:
         raise bad("a real number or an array of real numbers") from err
     if not (jnp.issubdtype(x.dtype, jnp.floating) or jnp.issubdtype(x.dtype, jnp.integer)):
         raise bad(f"real (dtype {x.dtype})")
     if not jnp.issubdtype(x.dtype, jnp.floating):
-        x = x.astype(jnp.result_type(float))
+        real = jnp.result_type(float)
+        x = asarray(np.asarray(x), real) if concrete(x) else x.astype(real)
     return x
 
 
@@ -80,13 +81,18 @@ def _number(x) -> str:
 
 
 def positive_checks(obj, *names: str) -> tuple[tuple[str, Array], ...]:
-    """``(message, condition)`` pairs: each named parameter positive and finite."""
+    """``(message, condition)`` pairs: each named parameter positive and finite (the condition a
+    NumPy boolean for a known value: no eager JAX operation, each a compilation in a new
+    process; a traced one for a tracer)."""
+
+    def ok(x):
+        if concrete(x):
+            x = np.asarray(x)
+            return np.isfinite(x) & (x > 0)
+        return jnp.isfinite(x) & (x > 0)
+
     return tuple(
-        (
-            f"parameter {name!r} must be positive and finite",
-            jnp.isfinite(getattr(obj, name)) & (getattr(obj, name) > 0),
-        )
-        for name in names
+        (f"parameter {name!r} must be positive and finite", ok(getattr(obj, name))) for name in names
     )
 
 
