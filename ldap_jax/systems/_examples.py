@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._compilation_cache import asarray
 from ._description import System
 
 __all__ = ["chaplygin_sleigh", "roller_racer"]
@@ -29,7 +30,7 @@ def _positive(**kwargs) -> dict:
             raise TypeError(f"parameter {name!r} must be a positive number, got {value!r}")
         if not np.all(np.isfinite(arr) & (arr > 0)):
             raise ValueError(f"parameter {name!r} must be positive and finite, got {value}")
-        out[name] = jnp.asarray(value, dtype=jnp.result_type(float))
+        out[name] = asarray(value, dtype=jnp.result_type(float))  # no eager program
     return out
 
 

@@ -7,12 +7,13 @@ from typing import ClassVar, NamedTuple
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array
 
 from .._numerics import materialise, plain_active, saved, sincos
 from ..lie._scalar import Pose, body_to_qdot, dtau1_transpose, pose_from_xy_theta, pose_retract
 from ..lie._se2 import exp_translation, small_angle
-from ._base import physical_parameter, positive_checks, random_draws
+from ._base import concrete, physical_parameter, positive_checks, random_draws
 from ._closed_form import AbstractClosedFormSystem
 
 __all__ = ["Snakeboard", "SnakeboardKernelState"]
@@ -29,6 +30,13 @@ class SnakeboardKernelState(NamedTuple):
     sin_phi: Array
     pu: tuple[Array, Array]
     mu: tuple[Array, Array, Array]
+
+
+def _below(I, m, l):  # noqa: E741
+    """``I < m l^2``: in NumPy for known values (no eager program), traced otherwise."""
+    if all(concrete(x) for x in (I, m, l)):
+        return np.asarray(I) < np.asarray(m) * np.asarray(l) ** 2
+    return I < m * l**2
 
 
 class Snakeboard(AbstractClosedFormSystem):
@@ -79,7 +87,7 @@ class Snakeboard(AbstractClosedFormSystem):
         return positive_checks(self, "m", "l", "I", "J") + (
             (
                 "parameter 'I' must satisfy I < m l^2 (the rotor's inertia below the board's)",
-                self.I < self.m * self.l**2,
+                _below(self.I, self.m, self.l),
             ),
         )
 
