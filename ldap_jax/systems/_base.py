@@ -80,7 +80,7 @@ def _number(x) -> str:
     return np.array2string(np.asarray(x), separator=", ", formatter={"float_kind": lambda v: f"{v:.6g}"})
 
 
-def positive_checks(obj, *names: str) -> tuple[tuple[str, Array], ...]:
+def positive_checks(obj, *names: str) -> tuple[tuple[str, Array | np.ndarray | np.bool_], ...]:
     """``(message, condition)`` pairs: each named parameter positive and finite (the condition a
     NumPy boolean for a known value: no eager JAX operation, each a compilation in a new
     process; a traced one for a tracer)."""
@@ -158,8 +158,9 @@ class AbstractSystem(eqx.Module):
     kinematic: ClassVar[tuple[bool, ...]]
     n_velocities: ClassVar[int]
 
-    def parameter_checks(self) -> tuple[tuple[str, Array], ...]:
-        """``(message, condition)`` pairs the physical parameters must satisfy (default: none).
+    def parameter_checks(self) -> tuple[tuple[str, Array | np.ndarray | np.bool_], ...]:
+        """``(message, condition)`` pairs the physical parameters must satisfy (default: none); a
+        condition on known values may be a NumPy boolean (no eager JAX operation).
 
         Checked at construction when the parameters are concrete (a ``ValueError`` with the
         message), and in every run when they are traced (e.g. a model built inside ``vmap``),
