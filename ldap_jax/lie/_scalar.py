@@ -16,7 +16,14 @@ from jaxtyping import Array
 from .._numerics import materialise, saved, sincos
 from ._se2 import exp_translation, small_angle
 
-__all__ = ["Pose", "pose_from_xy_theta", "pose_retract", "dtau1_transpose", "body_to_qdot"]
+__all__ = [
+    "Pose",
+    "pose_from_xy_theta",
+    "pose_retract",
+    "pose_retract_exp",
+    "dtau1_transpose",
+    "body_to_qdot",
+]
 
 
 class Pose(NamedTuple):
@@ -36,21 +43,31 @@ def pose_from_xy_theta(x: Array, y: Array, theta: Array) -> Pose:
 
 def pose_retract(g: Pose, v: tuple[Array, Array, Array], retraction: str) -> Pose:
     """``g tau(v)`` for ``v = (v1, v2, v3) = h xi`` and ``tau`` the exp or Cayley map (App. B)."""
-    w, v2, v3 = v
     if retraction == "exp":
-        _, ws = small_angle(w)
-        sw, cw = saved(*materialise(*sincos(ws)))
-        dx, dy = exp_translation(w, v2, v3, sw, cw)
-        # the rotation itself needs no Taylor branch; only the safe stand-in must not leak into it
-        small = jnp.abs(w) < jnp.finfo(w.dtype).eps ** 0.25
-        cw = jnp.where(small, 1.0 - w**2 / 2.0 + w**4 / 24.0, cw)
-        sw = jnp.where(small, w - w**3 / 6.0 + w**5 / 120.0, sw)
-        dth = w
-    else:
-        d = 4.0 + w**2
-        cw, sw = (4.0 - w**2) / d, 4.0 * w / d
-        dx, dy = (4.0 * v2 - 2.0 * w * v3) / d, (4.0 * v3 + 2.0 * w * v2) / d
-        dth = 2.0 * jnp.arctan(w / 2.0)
+        return pose_retract_exp(g, v)[0]
+    w, v2, v3 = v
+    d = 4.0 + w**2
+    cw, sw = (4.0 - w**2) / d, 4.0 * w / d
+    dx, dy = (4.0 * v2 - 2.0 * w * v3) / d, (4.0 * v3 + 2.0 * w * v2) / d
+    return _compose(g, dx, dy, 2.0 * jnp.arctan(w / 2.0), cw, sw)
+
+
+def pose_retract_exp(g: Pose, v: tuple[Array, Array, Array]) -> tuple[Pose, tuple[Array, Array]]:
+    """``g exp(v)`` (App. B), and ``(sin, cos)`` of the safe stand-in for ``w = v1`` that its
+    translation used (a hand-written derivative of a step reads them)."""
+    w, v2, v3 = v
+    _, ws = small_angle(w)
+    sw, cw = saved(*materialise(*sincos(ws)))
+    dx, dy = exp_translation(w, v2, v3, sw, cw)
+    # the rotation itself needs no Taylor branch; only the safe stand-in must not leak into it
+    small = jnp.abs(w) < jnp.finfo(w.dtype).eps ** 0.25
+    cr = jnp.where(small, 1.0 - w**2 / 2.0 + w**4 / 24.0, cw)
+    sr = jnp.where(small, w - w**3 / 6.0 + w**5 / 120.0, sw)
+    return _compose(g, dx, dy, w, cr, sr), (sw, cw)
+
+
+def _compose(g: Pose, dx: Array, dy: Array, dth: Array, cw: Array, sw: Array) -> Pose:
+    """``g`` composed with the pose ``(dx, dy, dth)`` whose rotation has cosine ``cw``, sine ``sw``."""
     c, s = g.cos, g.sin
     return Pose(g.x + c * dx - s * dy, g.y + s * dx + c * dy, g.theta + dth, c * cw - s * sw, s * cw + c * sw)
 

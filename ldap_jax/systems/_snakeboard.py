@@ -11,8 +11,14 @@ import numpy as np
 from jaxtyping import Array
 
 from .._numerics import materialise, plain_active, saved, sincos
-from ..lie._scalar import Pose, body_to_qdot, dtau1_transpose, pose_from_xy_theta, pose_retract
-from ..lie._se2 import exp_translation, small_angle
+from ..lie._scalar import (
+    Pose,
+    body_to_qdot,
+    dtau1_transpose,
+    pose_from_xy_theta,
+    pose_retract,
+    pose_retract_exp,
+)
 from ._base import concrete, physical_parameter, positive_checks, random_draws
 from ._closed_form import AbstractClosedFormSystem
 
@@ -298,7 +304,7 @@ class Snakeboard(AbstractClosedFormSystem):
         singular = (jnp.abs(cn) < jnp.finfo(cn.dtype).eps ** 0.25) | (cn * ck < 0)
         parts = dict(sd=sd, cd=cd, sa=sa, ca=ca, u_psi=u_psi, c=c, fa=fa, u_phi=u_phi)
         if retraction == "exp":
-            pose, parts["rotation"] = _retract_exp(state.pose, hxi)
+            pose, parts["rotation"] = pose_retract_exp(state.pose, hxi)
         else:
             pose = pose_retract(state.pose, hxi, retraction)
         new = SnakeboardKernelState(
@@ -344,21 +350,6 @@ class Snakeboard(AbstractClosedFormSystem):
     def kernel_node(self, state, c):
         q, u, xi, _ = self._kernel_velocity(state)
         return q, body_to_qdot(state.pose, u, xi)
-
-
-def _retract_exp(g: Pose, v: tuple[Array, Array, Array]) -> tuple[Pose, tuple[Array, Array]]:
-    """``pose_retract(g, v, "exp")`` (the same operations), and the ``(sin w, cos w)`` of its safe
-    angle, which the VJP of :func:`_symmetric_step` reads."""
-    w, v2, v3 = v
-    _, ws = small_angle(w)
-    sw, cw = saved(*materialise(*sincos(ws)))
-    dx, dy = exp_translation(w, v2, v3, sw, cw)
-    small = jnp.abs(w) < jnp.finfo(w.dtype).eps ** 0.25
-    cr = jnp.where(small, 1.0 - w**2 / 2.0 + w**4 / 24.0, cw)
-    sr = jnp.where(small, w - w**3 / 6.0 + w**5 / 120.0, sw)
-    c, s = g.cos, g.sin
-    pose = Pose(g.x + c * dx - s * dy, g.y + s * dx + c * dy, g.theta + w, c * cr - s * sr, s * cr + c * sr)
-    return pose, (sw, cw)
 
 
 @jax.custom_vjp
