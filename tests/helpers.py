@@ -120,6 +120,26 @@ _COMPILE_EVENTS = {
 
 
 @contextlib.contextmanager
+def eager_operations():
+    """Yield a list that collects the names of the primitives run eagerly inside the block (each
+    one a compiled program of its own in a new process)."""
+    from jax._src import core
+
+    names: list[str] = []
+    run = core.EvalTrace.process_primitive
+
+    def counted(self, primitive, args, params):
+        names.append(primitive.name)
+        return run(self, primitive, args, params)
+
+    core.EvalTrace.process_primitive = counted
+    try:
+        yield names
+    finally:
+        core.EvalTrace.process_primitive = run
+
+
+@contextlib.contextmanager
 def compiled_programs(stage: str = "compile"):
     """Yield a list that collects the names of the programs XLA compiles inside the block
     (e.g. ``"jit(_run)"``); ``stage="trace"``: of the functions JAX traces for ``jit`` (e.g.

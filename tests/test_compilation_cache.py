@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import maneuvers, systems
+from helpers import eager_operations, maneuvers, systems
 
 import ldap_jax as lj
 
@@ -93,8 +93,6 @@ def test_compiler_options_top_level_and_nested(monkeypatch):
 def test_asarray_is_jnp_asarray_without_a_program(x, dtype):
     """The library's ``asarray`` gives what ``jnp.asarray`` gives (dtype, weak type, values) and
     runs no eager JAX operation on a host value (``jnp.asarray`` compiles one in this JAX)."""
-    from jax._src import core
-
     from ldap_jax._compilation_cache import asarray
 
     try:
@@ -103,18 +101,8 @@ def test_asarray_is_jnp_asarray_without_a_program(x, dtype):
         with pytest.raises(TypeError):
             asarray(x, dtype)
         return
-    ops = []
-    run = core.EvalTrace.process_primitive
-
-    def counted(self, primitive, args, params):
-        ops.append(primitive.name)
-        return run(self, primitive, args, params)
-
-    core.EvalTrace.process_primitive = counted
-    try:
+    with eager_operations() as ops:
         got = asarray(x, dtype)
-    finally:
-        core.EvalTrace.process_primitive = run
     assert ops == []
     assert isinstance(got, jax.Array) and got.dtype == expected.dtype and got.shape == expected.shape
     assert got.aval.weak_type == expected.aval.weak_type

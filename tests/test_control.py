@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
-from helpers import compiled_programs
+from helpers import compiled_programs, eager_operations
 
 import ldap_jax as lj
 from ldap_jax import control as lc
@@ -867,25 +867,13 @@ def test_task_construction_and_solve_setup_run_no_eager_operation():
     set-up (the default guess, the options, the solver's view) run no eager JAX operation on its
     known values: in a new process each would compile a program of its own. The guess made on
     the host equals the compiled one."""
-    from jax._src import core
-
     from ldap_jax.control._solve import _checked, _solver_view
     from ldap_jax.control._task import _initial_guess
 
-    ops = []
-    run = core.EvalTrace.process_primitive
-
-    def counted(self, primitive, args, params):
-        ops.append(primitive.name)
-        return run(self, primitive, args, params)
-
-    core.EvalTrace.process_primitive = counted
-    try:
+    with eager_operations() as ops:
         task = lc.parallel_park()
         _, params0, _ = _checked(task, None, 1e-8, 1000, "base", 0.1, None)
         _solver_view(task)
-    finally:
-        core.EvalTrace.process_primitive = run
     assert ops == []
     np.testing.assert_allclose(params0, _initial_guess(task, None, task.guess.amplitude), rtol=0, atol=1e-15)
     assert params0.dtype == jnp.float64 and params0.shape == (101, 2)

@@ -251,6 +251,21 @@ def test_library_functions_are_keyed_by_name_user_functions_never():
         assert _export._signature("run", (swap(library),)) is None
 
 
+def _served_from_export(exports, call, traced_names):
+    """``call()`` without exports, then with them (exporting one program), then again with nothing
+    loaded in this process: that last one traces none of ``traced_names``. The three results."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("LDAP_JAX_EXPORT", "0")
+        want = call()
+    first = call()
+    assert len(list(exports.glob("*.jaxexport"))) == 1
+    _export._loaded.clear()
+    with compiled_programs("trace") as traced:
+        again = call()
+    assert not set(traced_names) & set(traced), traced
+    return want, first, again
+
+
 def test_gait_analysis_is_served_from_its_export(exports):
     """The cycle map's analysis behind ``lc.monodromy`` and ``lc.replay_gait`` (one period and
     its Jacobian) goes through an exported program like the solver's: read back without tracing,
@@ -259,15 +274,9 @@ def test_gait_analysis_is_served_from_its_export(exports):
 
     task = lc.drive_gait(n_steps=8)
     params = task.init()
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("LDAP_JAX_EXPORT", "0")
-        want = _gait_analysis._analysis(task, params)
-    first = _gait_analysis._analysis(task, params)
-    assert len(list(exports.glob("*.jaxexport"))) == 1
-    _export._loaded.clear()
-    with compiled_programs("trace") as traced:
-        again = _gait_analysis._analysis(task, params)
-    assert not {"export_gait_analysis", "_analysis_of"} & set(traced), traced
+    want, first, again = _served_from_export(
+        exports, lambda: _gait_analysis._analysis(task, params), ("export_gait_analysis", "_analysis_of")
+    )
     for got in (first, again):
         for x, y in zip(got, want):
             np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-12, atol=1e-12)
@@ -275,18 +284,17 @@ def test_gait_analysis_is_served_from_its_export(exports):
 
 def test_gait_tracker_is_served_from_its_export(exports):
     """``lc.gait_tracker``'s program (the linearised cycle and the periodic Riccati sweeps) goes
-    through an exported program: read back without tracing, the same gains to 1e-12."""
+    through an exported program: read back without tracing, the same gains to 1e-12; a weight is
+    an argument of the same program."""
     task = lc.drive_gait(n_steps=8)
     params = task.init()
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("LDAP_JAX_EXPORT", "0")
-        want = lc.gait_tracker(task, params)
-    first = lc.gait_tracker(task, params)
-    assert len(list(exports.glob("*.jaxexport"))) == 1
-    _export._loaded.clear()
+    want, first, again = _served_from_export(
+        exports, lambda: lc.gait_tracker(task, params), ("export_gait_tracker", "_tracker_of")
+    )
+    for got in (first, again):
+        np.testing.assert_allclose(np.asarray(got.gains), np.asarray(want.gains), rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(np.asarray(got.z_ref), np.asarray(want.z_ref), rtol=1e-12, atol=1e-12)
     with compiled_programs("trace") as traced:
-        again = lc.gait_tracker(task, params, q_weight=2.0)  # a weight is an argument
+        heavier = lc.gait_tracker(task, params, q_weight=2.0)
     assert not {"export_gait_tracker", "_tracker_of"} & set(traced), traced
-    np.testing.assert_allclose(np.asarray(first.gains), np.asarray(want.gains), rtol=1e-12, atol=1e-12)
-    np.testing.assert_allclose(np.asarray(first.z_ref), np.asarray(want.z_ref), rtol=1e-12, atol=1e-12)
-    assert not np.allclose(np.asarray(again.gains), np.asarray(want.gains))
+    assert not np.allclose(np.asarray(heavier.gains), np.asarray(want.gains))
