@@ -80,12 +80,18 @@ class SampledControls(AbstractParameterization):
         s = jnp.linspace(0.0, 1.0, self.n_steps + 1)
         if periodic:
             return self._periodic_init(key, amplitude, n_modes, s)
-        modes = jnp.stack([jnp.sin((j + 1) * jnp.pi * s) for j in range(n_modes)], axis=1)  # (K, M)
         if key is None:
-            coef = jnp.zeros((n_modes, n)).at[jnp.arange(n) % n_modes, jnp.arange(n)].set(amplitude)
-        else:
-            coef = amplitude * jax.random.normal(key, (n_modes, n))
-        return modes @ coef
+            return self.fixed_init(amplitude, n_modes=n_modes)
+        modes = jnp.stack([jnp.sin((j + 1) * jnp.pi * s) for j in range(n_modes)], axis=1)  # (K, M)
+        return modes @ (amplitude * jax.random.normal(key, (n_modes, n)))
+
+    def fixed_init(self, amplitude=0.3, *, n_modes: int = 3, xp=jnp):
+        """The deterministic guess (:meth:`init` with ``key=None``): channel ``c`` is
+        ``amplitude * sin((c mod n_modes + 1) pi t / T)`` at the nodes. ``xp``: the array module
+        (``numpy`` computes it on the host, with no compiled program)."""
+        s = xp.linspace(0.0, 1.0, self.n_steps + 1)
+        n = self.scale.shape[0]
+        return xp.stack([amplitude * xp.sin((c % n_modes + 1) * xp.pi * s) for c in range(n)], axis=1)
 
     def _periodic_init(self, key, amplitude, n_modes, s):
         n = self.scale.shape[0]

@@ -262,10 +262,10 @@ class Task(eqx.Module):
 
 
 def _host_guess(task: Task, amplitude: Any) -> Array | None:
-    """The deterministic default guess of per-step controls (:meth:`SampledControls.init` with
-    ``key=None``: channel ``c`` is ``amplitude * sin((c mod 3 + 1) pi t / T)``), computed with
-    NumPy; ``None`` where :func:`_initial_guess` is needed (a periodic task, a gait or explicit
-    guess, another parameterization, a traced amplitude). In a new process the compiled
+    """The deterministic default guess of per-step controls (:meth:`SampledControls.fixed_init`,
+    what :meth:`SampledControls.init` gives for ``key=None``), computed with NumPy; ``None`` where
+    :func:`_initial_guess` is needed (a periodic task, a gait or explicit guess, another
+    parameterization, a traced amplitude). In a new process the compiled
     :func:`_initial_guess` cost a trace and a cache read (20-60 ms)."""
     p = task.parameterization
     if (
@@ -277,10 +277,7 @@ def _host_guess(task: Task, amplitude: Any) -> Array | None:
         or not isinstance(amplitude, (int, float))
     ):
         return None
-    n_modes, n = 3, p.scale.shape[0]
-    s = np.linspace(0.0, 1.0, p.n_steps + 1)
-    values = np.stack([amplitude * np.sin((c % n_modes + 1) * np.pi * s) for c in range(n)], axis=1)
-    return asarray(values, jnp.result_type(float))
+    return asarray(p.fixed_init(amplitude, xp=np), jnp.result_type(float))
 
 
 @eqx.filter_jit
