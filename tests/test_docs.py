@@ -4,11 +4,13 @@ every example of the guide (docs/guide/*.md).
 All of them run in one child process, one after the other, each in a fresh namespace, as a user's
 session would run them (JAX's default numerics, not the suite's strict promotion). A guide page's
 examples run in order in one namespace (a later example may use an earlier one's names), then the
-test's checks for that page. Running everything in one process lets the examples reuse the
-notebooks' compiled programs: measured at the suite's code generation, the notebooks and four
-README examples in 73 s, against 64 s for the notebooks alone and 22 s for the examples run in a
-test worker. Examples that expose one device per core (``lj.use_cpu_cores()``) need a process of
-their own (the device count is fixed when JAX starts) and run in their own test.
+test's checks for that page; a notebook's cells are likewise followed by its checks where it
+computes a result that a test asserts on (the test worker would compute it again). Running
+everything in one process lets the examples reuse the notebooks' compiled programs: measured at
+the suite's code generation, the notebooks and four README examples in 73 s, against 64 s for the
+notebooks alone and 22 s for the examples run in a test worker. Examples that expose one device
+per core (``lj.use_cpu_cores()``) need a process of their own (the device count is fixed when JAX
+starts) and run in their own test.
 
 The child runs the code in an IPython shell (what a Jupyter kernel runs code in) without the
 kernel's ZeroMQ channels: with nbclient, shutting a kernel down on a loaded machine could leave
@@ -96,11 +98,18 @@ line = next(l for l in fig.axes[0].get_lines() if "rdp4" in l.get_label())
 want = sorted(r["runtime_us"] * 1e-6 for r in rows if r["method"] == "rdp4")
 assert len(want) == 2 and all(abs(a / b - 1) < 1e-12 for a, b in zip(sorted(line.get_xdata()), want))
 """,
+    # the path constraint: the free path crossed the disc; the detour costs effort and holds at
+    # the nodes on the model (to 1e-8 m inside), on the reference to the model error (1e-6 m), and
+    # the goal is still reached on the reference to 1e-6 m
     "control.md": """
 assert bool(sol.converged) and rp["final_position_error"] < 1e-6
 assert bool(around.converged) and float(around.cost) > float(sol.cost)
 closest = np.min(np.linalg.norm(q[:, :2] - np.asarray(center), axis=1))
 assert closest >= 0.05 - 1e-8
+assert np.min(np.linalg.norm(q_free[:, :2] - np.asarray(center), axis=1)) < 0.05
+rp_around = lc.replay(task, around.params)
+assert np.min(np.linalg.norm(rp_around["q_ref"][:, :2] - np.asarray(center), axis=1)) >= 0.05 - 1e-6
+assert rp_around["final_position_error"] < 1e-6
 assert bool(gait.converged) and np.all(cycles["return_error"] < 1e-5)
 assert tracker.n_channels == 2 and np.isfinite(float(jax.grad(optimal_effort)(1.0)))
 """,
@@ -110,6 +119,37 @@ assert 3.6 < plotting.fitted_order(steps, errors["RK4"], floor=1e-11) < 4.4
 for name in ("paths.png", "diagnostics.png", "convergence.png", "work_precision.png", "gait_loop.png"):
     assert os.path.getsize(os.path.join(folder, name)) > 0, name
 assert gif.endswith("gait.gif") and os.path.getsize(gif) > 0
+""",
+}
+
+
+# The checks run after a notebook's cells, in its namespace: what a test would otherwise compute
+# again in a worker, asserted on the notebook's own results.
+NOTEBOOK_CHECKS = {
+    # The roller racer with rolling resistance (an ``lj.System`` with a dissipation function, the
+    # general RDP step) through ``lc.make_gait`` (``lc.racer_gait()``): converged from its default
+    # guess with its constraints met to 1e-9; 3 cycles on the reference return to within 1e-5 of
+    # the model's orbit and move as the model's cycle does to 1e-6; every Floquet multiplier lies
+    # inside the unit circle (asymptotically stable), and from a perturbed start the cycle map
+    # returns to the orbit, the error shrinking every cycle.
+    "06_roller_racer.ipynb": """
+import equinox as eqx
+assert bool(sol_r.converged), lc.SOLVER_RESULTS[sol_r.result]
+assert float(sol_r.max_violation) <= 1e-9
+assert -float(sol_r.cost) > 0.5  # metres per cycle
+assert rp_r["reference_result"] == lj.RESULTS.successful
+assert rp_r["model_return_error"] <= 1e-9
+assert np.all(rp_r["return_error"] < 1e-5), rp_r["return_error"]
+assert np.all(rp_r["displacement_error"] < 1e-6), rp_r["displacement_error"]
+assert rp_r["stability"] == "asymptotically stable", rp_r["multipliers"]
+assert np.max(np.abs(rp_r["multipliers"])) < 0.5
+z0, _ = lc.monodromy(racer_task, sol_r.params)
+P = eqx.filter_jit(lambda z: lc.cycle_map(racer_task, sol_r.params, z))
+z, errors = np.asarray(z0) + np.array([0.05, -0.05, 0.05]), []
+for _ in range(4):
+    z = np.asarray(P(z))
+    errors.append(np.linalg.norm(z - np.asarray(z0)))
+assert np.all(np.diff(errors) < 0) and errors[-1] < 1e-4, errors
 """,
 }
 
@@ -174,7 +214,7 @@ def docs_report(tmp_path_factory):
     one child process in a temporary working directory (the files the notebooks write, e.g. their
     animations, do not touch the checkout)."""
     work = tmp_path_factory.mktemp("docs")
-    documents = {p.name: _notebook_cells(p) for p in NOTEBOOKS}
+    documents = {p.name: _notebook_cells(p) + [NOTEBOOK_CHECKS.get(p.name, "")] for p in NOTEBOOKS}
     for name, (_, check) in EXAMPLES.items():
         if _found(name):  # else its test fails on the missing example
             documents[f"README:{name}"] = [_example(name), check]
@@ -239,6 +279,7 @@ def test_guide_pages_have_checks():
     names = {p.name for p in GUIDE}
     assert {"simulate.md", "control.md", "study.md", "plotting.md"} <= names, names
     assert set(GUIDE_CHECKS) <= names
+    assert set(NOTEBOOK_CHECKS) <= {p.name for p in NOTEBOOKS}
 
 
 def test_readme_is_short_and_links_exist():

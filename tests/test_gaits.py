@@ -1,7 +1,9 @@
 """Periodic gaits as hard-constrained limit cycles: the built-in gaits solved from their default
 guesses, periodicity and prescribed displacements on the model, the replay over several cycles
 on the reference, the cycle map's monodromy and Floquet analysis, sensitivities of the optimum
-by the implicit function theorem, the tracker, a user path constraint, and bad input."""
+by the implicit function theorem, the tracker, and bad input. The roller racer's gait and a user
+path constraint are checked on the results of notebook 06 and of the control guide
+(tests/test_docs.py), which compute them anyway."""
 
 import equinox as eqx
 import jax
@@ -159,30 +161,6 @@ def test_tracker_holds_the_drive_gait_under_model_error(drive):
     assert drift["tracked"] < 0.05 < drift["open"], drift
 
 
-def test_user_path_constraint_keeps_the_car_off_a_disc():
-    """A user path constraint g(t, q, qdot, u) <= 0 on a built-in task: parallel parking around a
-    disc of radius 5 cm centred where the unconstrained path reaches farthest back. Held at the
-    nodes on the model (to 1e-8 m inside), on the reference to the model error (1e-6 m), and the
-    goal is still reached on the reference to 1e-6 m."""
-    task = lc.parallel_park(n_steps=60)
-    free = lc.solve(task)
-    q = np.asarray(task.rollout(free.params).q)
-    center = jnp.asarray(q[np.argmax(np.abs(q[:, 0])), :2])
-    r = 0.05
-    disc = lc.PathConstraint(lambda t, q, qdot, u: r**2 - jnp.sum((q[:2] - center) ** 2))
-    avoid = task.with_options(constraints=(*task.constraints, disc))
-    sol = lc.solve(avoid)
-    assert bool(sol.converged), lc.SOLVER_RESULTS[sol.result]
-    assert float(sol.cost) > float(free.cost)  # the detour costs effort
-    dist = np.linalg.norm(np.asarray(avoid.rollout(sol.params).q)[:, :2] - np.asarray(center), axis=1)
-    assert np.min(dist) >= r - 1e-8
-    assert np.min(np.linalg.norm(q[:, :2] - np.asarray(center), axis=1)) < r  # the free path crossed it
-    rp = lc.replay(avoid, sol.params)
-    dist_ref = np.linalg.norm(rp["q_ref"][:, :2] - np.asarray(center), axis=1)
-    assert np.min(dist_ref) >= r - 1e-6
-    assert rp["final_position_error"] < 1e-6
-
-
 def test_infeasible_prescribed_displacement_is_reported(drive):
     """A net rotation of 20 rad per cycle, far beyond what the torque bounds allow in one period
     (the drive gait's own constraint with another target: the same compiled program): not
@@ -268,31 +246,3 @@ def test_the_roller_racer_has_no_gait_its_momentum_grows_every_cycle():
     gain = float(np.sum(0.5 * (beta_phi[1:] + beta_phi[:-1])) * T / n)
     assert gain > 0.01
     np.testing.assert_allclose(weighted[-1] - weighted[0], gain, rtol=1e-4)
-
-
-def test_a_roller_racer_gait_through_the_generic_builder():
-    """The roller racer with rolling resistance (an ``lj.System`` with a dissipation function, the
-    general RDP step) through ``lc.make_gait`` (``lc.racer_gait()``): converged from its default
-    guess with its constraints met to 1e-9; 3 cycles on the reference return to within 1e-5 of the
-    model's orbit and move as the model's cycle does to 1e-6; every Floquet multiplier lies inside
-    the unit circle (asymptotically stable), and from a perturbed start the cycle map returns to
-    the orbit, the error shrinking every cycle."""
-    task = lc.racer_gait()
-    sol = lc.solve(task)
-    assert bool(sol.converged), lc.SOLVER_RESULTS[sol.result]
-    assert float(sol.max_violation) <= 1e-9
-    assert -float(sol.cost) > 0.5  # metres per cycle
-    rp = lc.replay_gait(task, sol.params, cycles=3)
-    assert rp["reference_result"] == lj.RESULTS.successful
-    assert rp["model_return_error"] <= 1e-9
-    assert np.all(rp["return_error"] < 1e-5), rp["return_error"]
-    assert np.all(rp["displacement_error"] < 1e-6), rp["displacement_error"]
-    assert rp["stability"] == "asymptotically stable", rp["multipliers"]
-    assert np.max(np.abs(rp["multipliers"])) < 0.5
-    z0, _ = lc.monodromy(task, sol.params)
-    P = eqx.filter_jit(lambda z: lc.cycle_map(task, sol.params, z))
-    z, errors = np.asarray(z0) + np.array([0.05, -0.05, 0.05]), []
-    for _ in range(4):
-        z = np.asarray(P(z))
-        errors.append(np.linalg.norm(z - np.asarray(z0)))
-    assert np.all(np.diff(errors) < 0) and errors[-1] < 1e-4, errors
