@@ -17,6 +17,7 @@ import dataclasses
 import json
 import os
 import platform
+import resource
 import time
 from collections.abc import Callable
 
@@ -140,11 +141,18 @@ def paired_ratio(times: np.ndarray, base: np.ndarray) -> dict[str, float]:
     }
 
 
-def _timed(fn, *args) -> Callable[[], tuple[float, float]]:
+def _timed(fn, *args) -> Callable[[], tuple[float, float, float]]:
+    """A call of ``fn(*args)`` for :func:`paired_rounds`: ``(wall, cpu, minor page faults)``. The
+    faults are the first touches of memory the allocator mapped afresh for the call (glibc maps
+    each block above 32 MB anew): a call that writes every node of a B = N = 1000 rollout pays
+    for ~1e4 of them in system time, a cost apart from the arithmetic."""
+
     def run():
+        f = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
         t, c = time.perf_counter(), time.process_time()
         jax.block_until_ready(fn(*args))
-        return time.perf_counter() - t, time.process_time() - c
+        wall, cpu = time.perf_counter() - t, time.process_time() - c
+        return wall, cpu, resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f
 
     return run
 
@@ -446,7 +454,7 @@ def default_call(cfg: Config, log) -> list[dict]:
     step and the sampler, in place of their hand-written VJPs (:func:`_autodiff_problem`). Ratios:
     the median over ``cfg.rounds`` rounds of each round's ratio (:func:`paired_ratio`), of the wall
     times and of the process CPU times (less sensitive to other processes on a shared machine),
-    and the ratio of the minima of the wall times."""
+    and the ratio of the minima of the wall times; the minor page faults of a call (median)."""
     system = SYSTEMS["snakeboard"]
     b, n = cfg.batch, cfg.steps
     data = maneuvers(system, b)
@@ -488,13 +496,15 @@ def default_call(cfg: Config, log) -> list[dict]:
             N=n,
             rounds=cfg.rounds,
             ns_per_step=float(np.median(t[:, 0])) / (b * n) * 1e9,
+            page_faults=float(np.median(t[:, 2])),
             over=base,
             **paired_ratio(t, times[base]),
         )
         rows.append(row)
         log(
             f"  {k}: {row['ns_per_step']:.1f} ns/step, {row['ratio']:.3f}x {base} "
-            f"({row['ratio_cpu']:.3f}x in CPU time, {row['ratio_of_min']:.3f}x of minima)"
+            f"({row['ratio_cpu']:.3f}x in CPU time, {row['ratio_of_min']:.3f}x of minima), "
+            f"{row['page_faults']:.0f} page faults per call"
         )
     return rows
 
@@ -1032,12 +1042,12 @@ def write_markdown(path, res):
             "Alternating rounds; ns/step: median over the rounds; ratios: median over the rounds of each "
             "round's ratio.",
             "",
-            "| call | B x N | ns/step | against | ratio (wall) | ratio (CPU) |",
-            "|---|---|---|---|---|---|",
+            "| call | B x N | ns/step | against | ratio (wall) | ratio (CPU) | page faults per call |",
+            "|---|---|---|---|---|---|---|",
         ]
         L += [
             f"| {r['call']} | {r['B']} x {r['N']} | {r['ns_per_step']:.1f} | {r['over']} | {r['ratio']:.2f} "
-            f"| {r['ratio_cpu']:.2f} |"
+            f"| {r['ratio_cpu']:.2f} | {r['page_faults']:.0f} |"
             for r in res["default_call"]
         ]
     L += _section(
