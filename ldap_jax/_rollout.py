@@ -306,18 +306,7 @@ def rollout(
                 abs_work = carry.abs_work + 0.5 * jnp.abs(h) * (
                     jnp.abs(carry.obs.power) + jnp.abs(obs_new.power)
                 )
-                # a finite node: its configuration, velocity, energy and power. The momentum and
-                # the constraint residual come from the state that gives the velocity (finite
-                # where it is, short of overflow): left out, so that a loss reading positions
-                # alone does not compute them in the loop
-                ok_diag = jnp.all(
-                    jnp.stack(
-                        [
-                            jnp.all(jnp.isfinite(x))
-                            for x in (obs_new.q, obs_new.qdot, obs_new.energy, obs_new.power)
-                        ]
-                    )
-                )
+                ok_diag = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in obs_new]))
                 step_result = RESULTS.where(
                     (step_result == RESULTS.successful) & ~ok_diag, RESULTS.nonfinite, step_result
                 )

@@ -206,9 +206,8 @@ def simulate(
             policy) gives the system at rest at ``q0``: a scale set by the inputs, which a
             diverging run cannot inflate as it inflates its own absolute work. Checked at
             every node when ``diagnostics`` is on (with ``diagnostics=False`` only non-finite
-            states are caught). Independently, a non-finite configuration, velocity, energy or
-            power at any node fails the run with ``RESULTS.nonfinite`` (the momentum and the
-            constraint residual come from the state that gives the velocity: finite where it is).
+            states are caught). Independently, a non-finite energy, work, momentum or
+            constraint residual at any node fails the run with ``RESULTS.nonfinite``.
         throw: raise (inside jit, via ``eqx.error_if``) if the integration failed, with the
             failure's message. Under ``jax.vmap`` it raises when any member failed and does not
             say which one (the check runs inside the batched program): run without ``throw`` and
