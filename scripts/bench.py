@@ -17,6 +17,7 @@ import dataclasses
 import json
 import os
 import platform
+import resource
 import time
 from collections.abc import Callable
 
@@ -57,6 +58,8 @@ class Config:
 
     quick: bool = False
     repeats: int = 5
+    #: paired rounds of the ratio sections (ours_over_c, default_call)
+    rounds: int = 30
     batch: int = 1000
     steps: int = 1000
     throughput_batch: int = 1000
@@ -72,12 +75,13 @@ class Config:
     energy_steps: int = 100_000
 
     @staticmethod
-    def for_run(quick: bool, repeats: int | None) -> Config:
+    def for_run(quick: bool, repeats: int | None, rounds: int | None = None) -> Config:
         if not quick:
-            return Config(repeats=repeats or 5)
+            return Config(repeats=repeats or 5, rounds=rounds or 30)
         return Config(
             quick=True,
             repeats=repeats or 2,
+            rounds=rounds or 5,
             throughput_batch=200,
             grad_batch=100,
             memory_batch=100,
@@ -111,6 +115,46 @@ def timeit(fn, *args, repeats=3):
         "cpu_min": float(np.min(cpu)),
         "first_call": first,
     }
+
+
+def paired_rounds(fns: dict[str, Callable[[], tuple[float, float]]], rounds: int) -> dict[str, np.ndarray]:
+    """Time every ``fns[k]()`` (each returns its ``(wall, cpu)`` seconds) once per round, for
+    ``rounds`` rounds, the order rotated from round to round (no call always runs first or after
+    the same neighbour): ``{k: array (rounds, 2)}``. A change of load hits every call of a round
+    alike, so the per-round ratios (:func:`paired_ratio`) are far steadier than ratios of minima
+    taken apart."""
+    keys = list(fns)
+    out = {k: [] for k in keys}
+    for r in range(rounds):
+        for k in keys[r % len(keys) :] + keys[: r % len(keys)]:
+            out[k].append(fns[k]())
+    return {k: np.asarray(v, float) for k, v in out.items()}
+
+
+def paired_ratio(times: np.ndarray, base: np.ndarray) -> dict[str, float]:
+    """Ratios of two series from :func:`paired_rounds`: the median over rounds of the per-round
+    ratio (wall and CPU; the figure reported), and the ratio of the minima (wall)."""
+    return {
+        "ratio": float(np.median(times[:, 0] / base[:, 0])),
+        "ratio_cpu": float(np.median(times[:, 1] / base[:, 1])),
+        "ratio_of_min": float(times[:, 0].min() / base[:, 0].min()),
+    }
+
+
+def _timed(fn, *args) -> Callable[[], tuple[float, float, float]]:
+    """A call of ``fn(*args)`` for :func:`paired_rounds`: ``(wall, cpu, minor page faults)``. The
+    faults are the first touches of memory the allocator mapped afresh for the call (glibc maps
+    each block above 32 MB anew): a call that writes every node of a B = N = 1000 rollout pays
+    for ~1e4 of them in system time, a cost apart from the arithmetic."""
+
+    def run():
+        f = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+        t, c = time.perf_counter(), time.process_time()
+        jax.block_until_ready(fn(*args))
+        wall, cpu = time.perf_counter() - t, time.process_time() - c
+        return wall, cpu, resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f
+
+    return run
 
 
 def rollout_fn(system, integrator, n_steps, t_final=10.0, *, save="final", diagnostics=False):
@@ -309,8 +353,9 @@ def ours_over_c(cfg: Config, log) -> list[dict]:
     rollout on one thread, and sharded over every device against C on every core. Ours and C run
     in alternating rounds (paired, so that a change of load hits both). C's time per composed step
     is ``SUBSTEPS[order]`` times its order-2 step (inlined polynomial sincos, the faster variant).
-    Reported: wall and CPU time per step (CPU: the process's, JAX's threads included; C on one
-    thread: the thread's) and their ratios ours/C, of the minima over the rounds."""
+    Reported: wall and CPU time per step, medians over ``cfg.rounds`` rounds (CPU: the process's,
+    JAX's threads included; C on one thread: the thread's), and the ratios ours/C: the median over
+    the rounds of each round's ratio (:func:`paired_ratio`; also the ratio of the minima)."""
     setup = _c_setup(cfg, log)
     if setup is None:
         return []
@@ -331,11 +376,14 @@ def ours_over_c(cfg: Config, log) -> list[dict]:
     opts = lj.compiler_options()
 
     def run_c(threads):
-        lib.set_threads(threads)
-        t, c = time.perf_counter(), time.thread_time() if threads == 1 else time.process_time()
-        c_fn(*call_args(q_c))
-        cpu = (time.thread_time() if threads == 1 else time.process_time()) - c
-        return time.perf_counter() - t, cpu
+        def run():
+            lib.set_threads(threads)
+            t, c = time.perf_counter(), time.thread_time() if threads == 1 else time.process_time()
+            c_fn(*call_args(q_c))
+            cpu = (time.thread_time() if threads == 1 else time.process_time()) - c
+            return time.perf_counter() - t, cpu
+
+        return run
 
     rows = []
     for order in (2, 4, 6):
@@ -362,35 +410,35 @@ def ours_over_c(cfg: Config, log) -> list[dict]:
         for layout, args, threads in layouts:
             for f in fns.values():
                 jax.block_until_ready(f(*args))
-            best = {k: [float("inf"), float("inf")] for k in (*fns, "C")}
-            for _ in range(cfg.repeats):  # alternating rounds: ours (each compile), then C
-                for k, f in fns.items():
-                    t, c = time.perf_counter(), time.process_time()
-                    jax.block_until_ready(f(*args))
-                    wall, cpu = time.perf_counter() - t, time.process_time() - c
-                    best[k] = [min(best[k][0], wall), min(best[k][1], cpu)]
-                wall, cpu = run_c(threads)
-                best["C"] = [min(best["C"][0], wall), min(best["C"][1], cpu)]
-            c_ns = [x / (b * n) * 1e9 * SUBSTEPS[order] for x in best["C"]]
+            run_c(threads)()
+            calls = {k: _timed(f, *args) for k, f in fns.items()}
+            times = paired_rounds({**calls, "C": run_c(threads)}, cfg.rounds)
+            # C's time per composed step: SUBSTEPS[order] of its order-2 steps
+            times["C"] = times["C"] * SUBSTEPS[order]
+            c_ns = [float(np.median(times["C"][:, i])) / (b * n) * 1e9 for i in (0, 1)]
             for k in fns:
-                ns = [x / (b * n) * 1e9 for x in best[k]]
+                ns = [float(np.median(times[k][:, i])) / (b * n) * 1e9 for i in (0, 1)]
+                r = paired_ratio(times[k], times["C"])
                 row = dict(
                     order=order,
                     layout=layout,
                     compile=k,
                     B=b,
                     N=n,
+                    rounds=cfg.rounds,
                     ns_per_step=ns[0],
                     cpu_ns_per_step=ns[1],
                     c_ns_per_step=c_ns[0],
                     c_cpu_ns_per_step=c_ns[1],
-                    ours_over_c=ns[0] / c_ns[0],
-                    ours_over_c_cpu=ns[1] / c_ns[1],
+                    ours_over_c=r["ratio"],
+                    ours_over_c_cpu=r["ratio_cpu"],
+                    ours_over_c_of_min=r["ratio_of_min"],
                 )
                 rows.append(row)
                 log(
                     f"  RDP{order} {layout}, {k}: {ns[0]:.1f} ns/step (CPU {ns[1]:.1f}), C {c_ns[0]:.1f} "
-                    f"(CPU {c_ns[1]:.1f}): ours/C {row['ours_over_c']:.2f} (CPU {row['ours_over_c_cpu']:.2f})"
+                    f"(CPU {c_ns[1]:.1f}): ours/C {row['ours_over_c']:.3f} "
+                    f"(CPU {row['ours_over_c_cpu']:.3f}, of minima {row['ours_over_c_of_min']:.3f})"
                 )
     return rows
 
@@ -403,9 +451,10 @@ def default_call(cfg: Config, log) -> list[dict]:
     what is not read, the divergence and finiteness tests stay), ``save="final",
     diagnostics=False``; the sum of a terminal cost over the batch and its gradient with respect to
     the controls (``checkpoint=False``), also with JAX's own derivative of the sampler, and of the
-    step and the sampler, in place of their hand-written VJPs (:func:`_autodiff_problem`). Ratios
-    of the minima of the wall times and of the process CPU times (less sensitive to other
-    processes on a shared machine)."""
+    step and the sampler, in place of their hand-written VJPs (:func:`_autodiff_problem`). Ratios:
+    the median over ``cfg.rounds`` rounds of each round's ratio (:func:`paired_ratio`), of the wall
+    times and of the process CPU times (less sensitive to other processes on a shared machine),
+    and the ratio of the minima of the wall times; the minor page faults of a call (median)."""
     system = SYSTEMS["snakeboard"]
     b, n = cfg.batch, cfg.steps
     data = maneuvers(system, b)
@@ -437,30 +486,25 @@ def default_call(cfg: Config, log) -> list[dict]:
     }
     for f, args in fns.values():
         jax.block_until_ready(f(*args))
-    best = dict.fromkeys(fns, float("inf"))
-    best_cpu = dict.fromkeys(fns, float("inf"))
-    for _ in range(cfg.repeats):
-        for k, (f, args) in fns.items():
-            t, c = time.perf_counter(), time.process_time()
-            jax.block_until_ready(f(*args))
-            best[k] = min(best[k], time.perf_counter() - t)
-            best_cpu[k] = min(best_cpu[k], time.process_time() - c)
+    times = paired_rounds({k: _timed(f, *args) for k, (f, args) in fns.items()}, cfg.rounds)
     rows = []
-    for k, t in best.items():
+    for k, t in times.items():
         base = "terminal cost" if k.startswith("its gradient") else "positions only"
         row = dict(
             call=k,
             B=b,
             N=n,
-            ns_per_step=t / (b * n) * 1e9,
+            rounds=cfg.rounds,
+            ns_per_step=float(np.median(t[:, 0])) / (b * n) * 1e9,
+            page_faults=float(np.median(t[:, 2])),
             over=base,
-            ratio=t / best[base],
-            ratio_cpu=best_cpu[k] / best_cpu[base],
+            **paired_ratio(t, times[base]),
         )
         rows.append(row)
         log(
-            f"  {k}: {row['ns_per_step']:.1f} ns/step, {row['ratio']:.2f}x {base} "
-            f"({row['ratio_cpu']:.2f}x in CPU time)"
+            f"  {k}: {row['ns_per_step']:.1f} ns/step, {row['ratio']:.3f}x {base} "
+            f"({row['ratio_cpu']:.3f}x in CPU time, {row['ratio_of_min']:.3f}x of minima), "
+            f"{row['page_faults']:.0f} page faults per call"
         )
     return rows
 
@@ -978,7 +1022,8 @@ def write_markdown(path, res):
             "",
             "## Ours / C, positions only (time per composed step; C = substeps x its order-2 step)",
             "",
-            "Ours and C in alternating rounds; CPU: the process's CPU time (C on one thread: the thread's).",
+            "Ours and C in alternating rounds; times: medians over the rounds; ratios: median over the "
+            "rounds of each round's ratio. CPU: the process's CPU time (C on one thread: the thread's).",
             "",
             "| order | layout | compiled with | ns/step | C ns/step | ours / C | CPU: ours / C |",
             "|---|---|---|---|---|---|---|",
@@ -994,12 +1039,15 @@ def write_markdown(path, res):
             "## The default call against positions only, a gradient against its forward "
             "(snakeboard, RDP order 2, one device, plain jit)",
             "",
-            "| call | B x N | ns/step | against | ratio (wall) | ratio (CPU) |",
-            "|---|---|---|---|---|---|",
+            "Alternating rounds; ns/step: median over the rounds; ratios: median over the rounds of each "
+            "round's ratio.",
+            "",
+            "| call | B x N | ns/step | against | ratio (wall) | ratio (CPU) | page faults per call |",
+            "|---|---|---|---|---|---|---|",
         ]
         L += [
             f"| {r['call']} | {r['B']} x {r['N']} | {r['ns_per_step']:.1f} | {r['over']} | {r['ratio']:.2f} "
-            f"| {r['ratio_cpu']:.2f} |"
+            f"| {r['ratio_cpu']:.2f} | {r['page_faults']:.0f} |"
             for r in res["default_call"]
         ]
     L += _section(
@@ -1192,10 +1240,15 @@ def main(argv=None) -> int:
     p.add_argument("--quick", action="store_true", help="small sizes (a few minutes)")
     p.add_argument("--out", default="results", help="output directory (default: results)")
     p.add_argument("--repeats", type=int, default=None, help="timed repeats (default: 5, quick 2)")
+    p.add_argument(
+        "--rounds", type=int, default=None, help="paired rounds of the ratio sections (default: 30, quick 5)"
+    )
     p.add_argument("--only", default=None, help=f"comma-separated sections among {', '.join(SECTIONS)}")
     args = p.parse_args(argv)
     if args.repeats is not None and args.repeats < 1:
         p.error("--repeats must be a positive integer")
+    if args.rounds is not None and args.rounds < 1:
+        p.error("--rounds must be a positive integer")
     only = SECTIONS if args.only is None else tuple(s.strip() for s in args.only.split(","))
     bad = [s for s in only if s not in SECTIONS]
     if bad:
@@ -1203,7 +1256,7 @@ def main(argv=None) -> int:
     if os.path.exists(args.out) and not os.path.isdir(args.out):
         p.error(f"--out {args.out} exists and is not a directory")
     os.makedirs(args.out, exist_ok=True)
-    cfg = Config.for_run(args.quick, args.repeats)
+    cfg = Config.for_run(args.quick, args.repeats, args.rounds)
     t0 = time.perf_counter()
 
     def log(msg):
