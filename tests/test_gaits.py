@@ -215,10 +215,6 @@ def test_the_roller_racer_has_no_gait_its_momentum_grows_every_cycle():
     phi, phidot = rng.uniform(-np.pi, np.pi, 64), rng.uniform(-3, 3, 64)
     s, f = rng.uniform(-2, 2, 64), rng.uniform(-5, 5, 64)
     np.testing.assert_allclose(Pd(phi, phidot, s, f), Pd(phi, phidot, s, 0 * f), rtol=1e-12, atol=1e-12)
-    a, beta = (np.asarray(x) for x in coefficients(phi))
-    rebuilt = a * phidot * np.asarray(P(phi, phidot, s)) + beta * phidot**2
-    np.testing.assert_allclose(Pd(phi, phidot, s, 0 * f), rebuilt, rtol=1e-10, atol=1e-12)
-    assert float(np.min(coefficients(np.linspace(-np.pi, np.pi, 721))[1])) > 0.005
 
     # the model: one period of random periodic hinge torques from a moving start
     T, n = 4.0, 400
@@ -229,20 +225,34 @@ def test_the_roller_racer_has_no_gait_its_momentum_grows_every_cycle():
         return jnp.stack([jnp.sum(coef[0] * jnp.sin(w) + coef[1] * jnp.cos(w))])
 
     q0 = np.array([0.0, 0.0, 0.0, 0.3])
-    qdot0 = np.asarray(racer.qdot_from_velocities(q0, jnp.array([0.8, -0.4]), jnp.zeros(1)))
+    qdot0 = np.asarray(eqx.filter_jit(racer.qdot_from_velocities)(q0, jnp.array([0.8, -0.4]), jnp.zeros(1)))
     traj = lj.simulate(
         racer, q0, qdot0, lj.Policy(torque, 1), t_final=T, n_steps=n, integrator=lj.RDP(order=4)
     )
     assert traj.result == lj.RESULTS.successful
     q, qdot = np.asarray(traj.q), np.asarray(traj.qdot)
-    v = np.asarray(jax.vmap(racer.velocities_from_qdot)(q, qdot))
+    v = np.asarray(jax.jit(lambda a, b: jax.vmap(racer.velocities_from_qdot)(a, b))(q, qdot))
     phis, rates = q[:, 3], v[:, 0]
     x, w = np.polynomial.legendre.leggauss(20)  # Phi(phi) = exp(-int_0^phi a), per node
-    a_nodes = np.asarray(coefficients((0.5 * phis[:, None] * (x[None, :] + 1)).ravel())[0])
-    Phi = np.exp(-0.5 * phis * (a_nodes.reshape(-1, x.size) @ w))
-    weighted = Phi * np.asarray(P(phis, rates, v[:, 1]))
+
+    # the coefficients at every angle this test reads, in one call (one compiled program): the
+    # random states, a grid on [-pi, pi], the quadrature points and the nodes
+    parts = (phi, np.linspace(-np.pi, np.pi, 721), (0.5 * phis[:, None] * (x[None, :] + 1)).ravel(), phis)
+    a_all, beta_all = (
+        np.split(np.asarray(c), np.cumsum([p.size for p in parts])[:-1])
+        for c in coefficients(np.concatenate(parts))
+    )
+    momenta = np.asarray(
+        P(np.concatenate([phi, phis]), np.concatenate([phidot, rates]), np.concatenate([s, v[:, 1]]))
+    )
+    rebuilt = a_all[0] * phidot * momenta[:64] + beta_all[0] * phidot**2
+    np.testing.assert_allclose(Pd(phi, phidot, s, 0 * f), rebuilt, rtol=1e-10, atol=1e-12)
+    assert float(np.min(beta_all[1])) > 0.005
+
+    Phi = np.exp(-0.5 * phis * (a_all[2].reshape(-1, x.size) @ w))
+    weighted = Phi * momenta[64:]
     assert np.all(np.diff(weighted) > -1e-9), np.diff(weighted).min()
-    gain = beta_phi = np.asarray(coefficients(phis)[1]) * Phi * rates**2
+    beta_phi = beta_all[3] * Phi * rates**2
     gain = float(np.sum(0.5 * (beta_phi[1:] + beta_phi[:-1])) * T / n)
     assert gain > 0.01
     np.testing.assert_allclose(weighted[-1] - weighted[0], gain, rtol=1e-4)
