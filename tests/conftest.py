@@ -124,23 +124,23 @@ _GROUPS = {
 }
 
 
-#: The gait tests, the car's solutions of test_control and the documents (tests/test_docs.py's
-#: child process, ``docs_report``) solve the same problems (the drive gait of notebook 05, the
-#: control guide and the README; parallel parking and the U-turn at N = 120 of notebook 03 and the
-#: guide), and a cold solve compiles for tens of seconds. On one worker and in this order, the
+#: The gait tests, the car's solutions of test_control and the documents of tests/test_docs.py's
+#: ``CHAIN`` (its second child process) solve the same problems (the drive gait of notebook 05,
+#: the control guide and the README; parallel parking and the U-turn at N = 120 of notebook 03 and
+#: the guide), and a cold solve compiles for tens of seconds. On one worker and in this order, the
 #: child reads the tests' compiled and exported programs from the shared persistent cache; on two
 #: workers at once each compiled them (measured under load: notebook 05 alone 710 s, after
-#: test_gaits 68 s). The group is scheduled first, so that this chain, the longest, starts at once.
+#: test_gaits 68 s). test_docs.py marks its chain documents with this group itself.
 _DOCS_CHAIN = "gaits"
 
 
 def _chain_rank(item) -> int:
-    """0 for the tests whose solves the documents repeat, 1 for the documents, 2 for every other
-    test (their order kept)."""
-    fixtures = getattr(item, "fixturenames", ())
-    if item.path.name == "test_gaits.py" or "car_solutions" in fixtures:
+    """0 for the tests whose solves the chain's documents repeat, 1 for those documents, 2 for
+    every other test (their order kept)."""
+    if item.path.name == "test_gaits.py" or "car_solutions" in getattr(item, "fixturenames", ()):
         return 0
-    return 1 if "docs_report" in fixtures else 2
+    groups = {m.args[0] for m in item.iter_markers("xdist_group") if m.args}
+    return 1 if item.path.name == "test_docs.py" and _DOCS_CHAIN in groups else 2
 
 
 def _module_fixtures(item) -> list[str]:
@@ -162,7 +162,7 @@ def pytest_collection_modifyitems(config, items):
         group = _GROUPS.get(item.path.name)
         if item.path.name == "test_general.py" and item.name == "test_sleigh_energy_and_momentum_equation":
             group = "closed_form"  # helpers.sleigh_newton_run
-        if _chain_rank(item) < 2:
+        if _chain_rank(item) == 0:
             group = _DOCS_CHAIN
         # a module-scoped fixture is computed once per worker: keep its users together (unless the
         # test names its group itself: pytest-xdist would join both names into a third group)

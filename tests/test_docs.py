@@ -208,18 +208,35 @@ def _guide_cells(path: pathlib.Path) -> list[str]:
     return [b for b in _python_blocks(path.read_text()) if ALL_CORES not in b]
 
 
-@pytest.fixture(scope="module")
-def docs_report(tmp_path_factory):
-    """Runs every notebook, every README example and every guide page, each with its checks, in
-    one child process in a temporary working directory (the files the notebooks write, e.g. their
-    animations, do not touch the checkout)."""
-    work = tmp_path_factory.mktemp("docs")
+#: The documents that solve what tests/conftest.py's chain of tests solves first (the drive gait,
+#: parallel parking and the U-turn at N = 120): they run in a child process of their own after
+#: those tests, on the same worker, and read their compiled programs from the shared cache. The
+#: other documents run in another child, which the other worker can run meanwhile.
+CHAIN = {
+    "03_optimal_control.ipynb",
+    "05_gaits.ipynb",
+    "06_roller_racer.ipynb",
+    "README:control",
+    "guide:control.md",
+}
+CHAIN_GROUP = "gaits"  # tests/conftest.py's _DOCS_CHAIN
+
+
+def _documents() -> dict[str, list[str]]:
+    """Every notebook, README example and guide page: its code cells, then its checks."""
     documents = {p.name: _notebook_cells(p) + [NOTEBOOK_CHECKS.get(p.name, "")] for p in NOTEBOOKS}
     for name, (_, check) in EXAMPLES.items():
         if _found(name):  # else its test fails on the missing example
             documents[f"README:{name}"] = [_example(name), check]
     for path in GUIDE:
         documents[f"guide:{path.name}"] = _guide_cells(path) + [GUIDE_CHECKS.get(path.name, "")]
+    return documents
+
+
+def _run_documents(work: pathlib.Path, documents: dict[str, list[str]]):
+    """Runs the documents, each with its checks, in one child process in the temporary working
+    directory ``work`` (the files the notebooks write, e.g. their animations, do not touch the
+    checkout); returns the child's report (document -> "OK" or the failure) and its output."""
     spec = work / "documents.json"
     spec.write_text(json.dumps(documents))
     out = work / "report.json"
@@ -235,6 +252,26 @@ def docs_report(tmp_path_factory):
     return report, res
 
 
+@pytest.fixture(scope="module")
+def docs_report(tmp_path_factory):
+    """The documents outside :data:`CHAIN`, in one child process."""
+    documents = {k: v for k, v in _documents().items() if k not in CHAIN}
+    return _run_documents(tmp_path_factory.mktemp("docs"), documents)
+
+
+@pytest.fixture(scope="module")
+def docs_chain_report(tmp_path_factory):
+    """The documents of :data:`CHAIN`, in one child process."""
+    documents = {k: v for k, v in _documents().items() if k in CHAIN}
+    return _run_documents(tmp_path_factory.mktemp("docs_chain"), documents)
+
+
+def _param(document: str, value, id: str):
+    """A test's parameter for ``document``, in the xdist group of the child that runs it."""
+    group = CHAIN_GROUP if document in CHAIN else "docs"
+    return pytest.param(value, id=id, marks=pytest.mark.xdist_group(group))
+
+
 def _docs_env() -> dict:
     """The child's environment: the notebooks' ``lj.enable_compilation_cache()`` uses the suite's
     cache folder (``$LDAP_JAX_CACHE``; conftest passes it as ``JAX_COMPILATION_CACHE_DIR``), so the
@@ -247,31 +284,31 @@ def _docs_env() -> dict:
     return env
 
 
-def _assert_ran(name, docs_report):
-    report, res = docs_report
+def _assert_ran(name, request):
+    report, res = request.getfixturevalue("docs_chain_report" if name in CHAIN else "docs_report")
     assert report.get(name) == "OK", (report.get(name), res.stdout[-3000:], res.stderr[-3000:])
 
 
-@pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.name for p in NOTEBOOKS])
-def test_notebook_executes(path, docs_report):
-    _assert_ran(path.name, docs_report)
+@pytest.mark.parametrize("path", [_param(p.name, p, p.name) for p in NOTEBOOKS])
+def test_notebook_executes(path, request):
+    _assert_ran(path.name, request)
 
 
-@pytest.mark.parametrize("name", list(EXAMPLES))
-def test_readme_example_runs(name, docs_report):
+@pytest.mark.parametrize("name", [_param(f"README:{n}", n, n) for n in EXAMPLES])
+def test_readme_example_runs(name, request):
     """The README's examples run as printed, and do what the text around them says."""
     block = _example(name)
     if name == "quick":
         assert "lj.simulate" in block and "lj.reference" in block
-    _assert_ran(f"README:{name}", docs_report)
+    _assert_ran(f"README:{name}", request)
 
 
-@pytest.mark.parametrize("path", GUIDE, ids=[p.name for p in GUIDE])
-def test_guide_examples_run(path, docs_report):
+@pytest.mark.parametrize("path", [_param(f"guide:{p.name}", p, p.name) for p in GUIDE])
+def test_guide_examples_run(path, request):
     """Every example of every guide page runs as printed (in order, in one namespace) and does what
     the page says (GUIDE_CHECKS)."""
     assert _python_blocks(path.read_text()), f"{path.name} has no example"
-    _assert_ran(f"guide:{path.name}", docs_report)
+    _assert_ran(f"guide:{path.name}", request)
 
 
 def test_guide_pages_have_checks():
