@@ -191,11 +191,13 @@ def _solve_one(task: Task, params0, options: IPMOptions) -> Solution:
 
 
 def _finished(task: Task, st: IPMState, violation: Array, params0) -> Solution:
-    """:func:`_finish` through its exported program where it can be (at the top level)."""
-    sol = _export.call(
-        "finish", _finish.__wrapped__, (task, st, violation), lambda: _template(params0), top_level=True
-    )
-    return _finish(task, st, violation) if sol is NotImplemented else sol
+    """:func:`_finish` through its exported program where it can be: at the top level, and under a
+    top-level ``grad``/``jvp`` (the sensitivities) with its exported Jacobian."""
+    args = (task, st, violation)
+    sol = _export.call("finish", _finish.__wrapped__, args, lambda: _template(params0), top_level=True)
+    if sol is NotImplemented:
+        sol = _export.differentiated("finish", _finish.__wrapped__, args, lambda: _template(params0))
+    return _finish(*args) if sol is NotImplemented else sol
 
 
 def _run_template():
