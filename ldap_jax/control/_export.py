@@ -29,7 +29,7 @@ the run's inputs are cut from differentiation, so the run is the exported progra
 under a top-level ``grad``/``jvp`` (one differentiation directly over the evaluation, as
 ``jax.grad(f)(x)`` called outside any other transformation) runs as two exported programs
 (:func:`differentiated`): the finish on the primal values and its Jacobian with respect to the
-arguments the derivative traces; otherwise (``jacfwd``, ``hessian``, under ``vmap``) its
+task's arrays; otherwise (``jacfwd``, ``hessian``, under ``vmap``) its
 derivative is traced.
 
 The exports live in the persistent compilation cache's directory (``jax_compilation_cache_dir``,
@@ -282,23 +282,33 @@ def call(
         return runner(leaves)
 
 
-def differentiated(name: str, fun: Callable, args: tuple, out_template: Callable[[], Any]) -> Any:
+#: the most Jacobian columns (scalars of the arrays it is taken with respect to) an exported
+#: derivative computes; above, the derivative is traced as written
+MAX_COLUMNS = 1000
+
+
+def differentiated(
+    name: str, fun: Callable, args: tuple, out_template: Callable[[], Any], n_wrt: int = 1
+) -> Any:
     """``fun(*args)`` under a top-level ``jax.grad``/``jax.jvp`` through two exported programs, or
     ``NotImplemented`` where it cannot (see below).
 
     Where one differentiation trace lies directly over the evaluation (``jax.grad(f)(x)`` or
     ``jax.jvp`` outside any other transformation) and every traced leaf of ``args`` is an
-    inexact array of that trace with a concrete primal value, ``fun`` runs on the primal values
+    inexact array of that trace with a concrete primal value, among the leaves of the first
+    ``n_wrt`` arguments (for ``lc.solve``'s finish: the task), ``fun`` runs on the primal values
     (the program :func:`call` serves as ``name``) and its Jacobian ``J_ij = d out_i / d theta_j``
-    with respect to the traced leaves ``theta_j`` (forward mode, one column per traced scalar:
-    ``name + "_jacobian"``, keyed by which leaves are traced) is a second exported program. The
-    outputs' tangents are ``sum_j J_ij . t_j``, a contraction linear in the tangents that JAX
-    transposes for reverse mode, so a new process neither traces nor differentiates ``fun``.
+    with respect to every inexact leaf ``theta_j`` of those arguments (forward mode, one column
+    per scalar, at most :data:`MAX_COLUMNS`) is a second exported program, ``name +
+    "_jacobian"``: one program whichever of them a derivative traces (the mass, the goal, both).
+    The outputs' tangents are ``sum_j J_ij . t_j`` over the traced leaves, a contraction linear
+    in the tangents that JAX transposes for reverse mode, so a new process neither traces nor
+    differentiates ``fun``.
 
     The derivative is first order: the Jacobian is a constant of the contraction. Under a second
     differentiation (``jax.hessian``), ``jacfwd`` (``vmap`` of ``jvp``), a ``vmap`` or a staging
-    trace, or with a traced leaf that is not such an array, it declines and ``fun``'s derivative is
-    traced as written.
+    trace, with a traced leaf that is not such an array, or above :data:`MAX_COLUMNS`, it
+    declines and ``fun``'s derivative is traced as written.
     """
     if not enabled():
         return NotImplemented
@@ -316,19 +326,28 @@ def differentiated(name: str, fun: Callable, args: tuple, out_template: Callable
     except (ImportError, AttributeError):  # pragma: no cover - a future JAX
         return NotImplemented
     leaves, treedef = jax.tree_util.tree_flatten(args)
-    primals, positions = [], []
+    n_first = len(jax.tree_util.tree_leaves(args[:n_wrt]))  # their leaves come first
+    primals, traced = [], []
     for i, x in enumerate(leaves):
         if isinstance(x, core.Tracer):
             primal = getattr(x, "primal", None)
-            if x._trace is not trace or isinstance(primal, core.Tracer) or not eqx.is_inexact_array(primal):
+            if (
+                i >= n_first
+                or x._trace is not trace
+                or isinstance(primal, core.Tracer)
+                or not eqx.is_inexact_array(primal)
+            ):
                 return NotImplemented
-            positions.append(i)
+            traced.append(i)
             x = primal
         primals.append(x)
+    positions = [i for i in range(n_first) if eqx.is_inexact_array(primals[i])]
+    if sum(int(np.size(primals[i])) for i in positions) > MAX_COLUMNS:
+        return NotImplemented
     primal_args = jax.tree_util.tree_unflatten(treedef, primals)
     with _outside_traces(True):
         out = call(name, fun, primal_args, out_template, top_level=True)
-        if out is NotImplemented or not positions:
+        if out is NotImplemented or not traced:
             return out
         flat, out_def = jax.tree_util.tree_flatten(out)
         inexact = [k for k, o in enumerate(flat) if eqx.is_inexact_array(o)]
@@ -340,7 +359,9 @@ def differentiated(name: str, fun: Callable, args: tuple, out_template: Callable
         )
     if jac is NotImplemented:
         return NotImplemented
-    tangents = _with_tangents([flat[k] for k in inexact], jac, [leaves[i] for i in positions])
+    columns = [positions.index(i) for i in traced]
+    jac = [[row[c] for c in columns] for row in jac]
+    tangents = _with_tangents([flat[k] for k in inexact], jac, [leaves[i] for i in traced])
     for k, value in zip(inexact, tangents):
         flat[k] = value
     return jax.tree_util.tree_unflatten(out_def, flat)
