@@ -128,7 +128,8 @@ def solve(
     compilation cache on (:func:`ldap_jax.enable_compilation_cache`), the solver's programs are
     also kept traced (``jax.export``, in the cache folder): a new process that solves a problem of
     the same structure (other goal, bounds, model parameters or tolerances) neither traces nor
-    compiles them (``LDAP_JAX_EXPORT=0`` turns this off).
+    compiles them (``LDAP_JAX_EXPORT=0`` turns this off). So are, under a top-level ``jax.grad``
+    or ``jax.jvp``, the derivative's: the solution's Jacobian with respect to the task's arrays.
 
     Args:
         task: a task with per-step sampled controls (:class:`SampledControls`).
