@@ -6,6 +6,8 @@ a fifth of a second to import).
 
 from __future__ import annotations
 
+import contextlib
+import threading
 from typing import Any
 
 import equinox as eqx
@@ -170,6 +172,39 @@ def reference(
     return sol if n == ts.shape[0] else _first(sol, n)
 
 
+_checks_lock = threading.Lock()
+
+
+@contextlib.contextmanager
+def _save_times_unchecked():
+    """Trace ``diffeqsolve`` without its run-time checks of the save times.
+
+    diffrax checks that ``SaveAt(ts)`` is ordered and lies in ``[t0, t1]`` with equinox's
+    run-time errors, a host callback in the program; JAX keeps no program with a host callback
+    in its persistent compilation cache, so every new process compiled the reference again
+    (2-4 s of a notebook's warm run per model and sample count). The times :func:`_reference`
+    passes always pass both checks (they are validated first, and an invalid request integrates
+    from ``t0`` to ``t0``), so while this thread traces the call equinox's error mode is
+    ``"nan"``: a failed check would give NaN (never a host callback). Equinox reads the mode at
+    trace time; without the setting (a future equinox) the checks stay as they are.
+    """
+    try:
+        from equinox import _errors
+    except ImportError:  # pragma: no cover - a future equinox: keep the checks
+        yield
+        return
+    if not hasattr(_errors, "EQX_ON_ERROR"):  # pragma: no cover
+        yield
+        return
+    with _checks_lock:
+        old = _errors.EQX_ON_ERROR
+        _errors.EQX_ON_ERROR = "nan"
+        try:
+            yield
+        finally:
+            _errors.EQX_ON_ERROR = old
+
+
 def _bucket(n: int) -> int:
     """The number of samples ``reference`` solves for when asked for ``n``: the next power of two,
     at least 32, so that requests differing only in their number of samples share a compiled
@@ -231,19 +266,20 @@ def _reference(system, q0, qdot0, controls, ts, t0, rtol, atol, solver, max_step
     jumps = controls.breakpoints()
     if jumps is not None:
         controller = diffrax.ClipStepSizeController(controller, jump_ts=jumps)
-    sol = diffrax.diffeqsolve(
-        diffrax.ODETerm(vector_field),
-        solver,
-        t0=t0,
-        t1=t_end,
-        dt0=None,
-        y0=(q_start, v_start),
-        saveat=diffrax.SaveAt(ts=ts_safe),
-        stepsize_controller=controller,
-        max_steps=max_steps,
-        event=diffrax.Event((nonfinite, singularity)),
-        throw=False,
-    )
+    with _save_times_unchecked():
+        sol = diffrax.diffeqsolve(
+            diffrax.ODETerm(vector_field),
+            solver,
+            t0=t0,
+            t1=t_end,
+            dt0=None,
+            y0=(q_start, v_start),
+            saveat=diffrax.SaveAt(ts=ts_safe),
+            stepsize_controller=controller,
+            max_steps=max_steps,
+            event=diffrax.Event((nonfinite, singularity)),
+            throw=False,
+        )
     q, v = sol.ys
     u_kin = jax.vmap(lambda t: system.inputs(controls(t))[1])(ts)
     qdot = jax.vmap(system.qdot_from_velocities)(q, v, u_kin)

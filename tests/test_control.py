@@ -488,8 +488,9 @@ def test_sensitivities_match_finite_differences_of_resolves(small_park):
         dcost = jax.grad(lambda g, m: optimum(g, m)[0], argnums=(0, 1))(g0, m0)
         dparams = jax.jacfwd(lambda g: optimum(g, m0)[1])(g0)
     # the interior-point run is the program the solve above compiled: derivatives compile only
-    # the implicit-function-theorem step
-    assert "jit(_finish)" in names and not {"jit(_run)", "jit(_solve)"} & set(names), names
+    # the implicit-function-theorem step (the traced finish under jacfwd; under grad, with the
+    # persistent cache on, its exported Jacobian), unless a test of this worker compiled it first
+    assert not {"jit(_run)", "jit(_solve)", "jit(exported_run)"} & set(names), names
     eps = 1e-4
     dcost_goal, dparams = np.asarray(dcost[0]), np.asarray(dparams)
     for i in range(3):

@@ -143,6 +143,45 @@ def test_gradients_use_the_exported_run(exports):
         want = jax.grad(effort, argnums=(0, 1))(task.goal, 1.0)
     for a, b in zip(grad, want):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-10, atol=1e-12)
+    # as a new process: the finish and its Jacobian are read back, nothing of the solver traced
+    _export._loaded.clear()
+    with compiled_programs("trace") as traced:
+        again = jax.grad(effort, argnums=(0, 1))(task.goal, 1.0)
+    assert not {"_run_one", "_finish", "export_finish", "export_finish_jacobian"} & set(traced), traced
+    for a, b in zip(again, want):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-10, atol=1e-12)
+
+
+def test_exported_sensitivities_in_forward_and_reverse_mode(exports):
+    """Under a top-level grad or jvp the finish runs as its exported program and its exported
+    Jacobian with respect to the task's arrays (one program whichever of them are traced): the
+    derivatives of the cost and of the optimal controls equal the traced IFT derivatives (to
+    1e-10), in reverse and in forward mode; under jacfwd (vmap of jvp) the derivative is traced,
+    with the same values."""
+    task = lc.parallel_park(integrator=lj.RDP(), n_steps=40)
+    sol = lc.solve(task)
+
+    def optimum(goal, m):
+        out = lc.solve(task.with_options(goal=goal, system=lj.Car(m=m)), sol.params, tol=1e-10)
+        return out.cost, out.params[10]
+
+    g0, m0, dg = task.goal, jnp.asarray(1.0), jnp.asarray([0.3, -0.2, 0.1])
+    runs = {
+        "grad": lambda: jax.grad(lambda g, m: optimum(g, m)[0], argnums=(0, 1))(g0, m0),
+        "jvp": lambda: jax.jvp(lambda g: optimum(g, m0), (g0,), (dg,))[1],
+        "jacfwd": lambda: jax.jacfwd(lambda g: optimum(g, m0)[1])(g0),
+    }
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("LDAP_JAX_EXPORT", "0")
+        want = {name: run() for name, run in runs.items()}
+    for name, run in runs.items():
+        with compiled_programs("trace") as traced:
+            got = run()
+        assert ("export_finish_jacobian" in traced) == (name == "grad"), (name, traced)
+        for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want[name])):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-10, atol=1e-12)
+    # the grad traced the goal and the mass, the jvp the goal only: one Jacobian program
+    assert len(list(exports.glob("*.jaxexport"))) == 3
 
 
 def test_exports_off_inside_traces_and_without_a_cache(exports, monkeypatch):

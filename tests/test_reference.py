@@ -76,6 +76,25 @@ def test_reference_shares_one_program_across_sample_counts_and_tolerances():
     np.testing.assert_allclose(np.asarray(b.qdot)[shared], a.qdot, rtol=0, atol=1e-13)
 
 
+def test_reference_program_has_no_host_callback():
+    """The reference's program holds no host callback (diffrax's run-time checks of the save
+    times are off while it is traced: the times are validated before), so JAX's persistent
+    compilation cache keeps it and a new process does not compile it again; equinox's error mode
+    is restored after tracing."""
+    import equinox._errors as errors
+
+    from ldap_jax import _reference
+
+    sb = SYSTEMS["snakeboard"]
+    q0, qdot0, ctl = index(maneuvers(sb, 1, seed=22), 0)
+    ts = _reference._padded(jnp.linspace(0.0, 10.0, 11))
+    mode = errors.EQX_ON_ERROR
+    args = (sb, q0, qdot0, ctl, ts, jnp.asarray(0.0), jnp.asarray(1e-11), jnp.asarray(1e-11))
+    text = _reference._reference.lower(*args, diffrax.Dopri8(), 4096, False).as_text()
+    assert "callback" not in text
+    assert errors.EQX_ON_ERROR == mode
+
+
 def test_reference_is_converged_on_sampled_controls():
     """The same on piecewise-linear (sampled) controls, whose slope jumps at every sample: the
     reference steps onto the samples (``Sampled.breakpoints``). Stepping across them, Dopri8 at

@@ -24,9 +24,13 @@ JAX, equinox and NumPy (a class of your own: its code is not in the key) is neve
 
 ``lc.solve`` exports two programs: the interior-point run (for a batch of guesses, the run of
 every start) and the finish (the optimum with its IFT derivative rule, the model-error
-estimate). Under a user's ``jit`` or ``vmap`` both are traced as always; under ``grad``/``jvp``
-the run's inputs are cut from differentiation, so the run is the exported program, and the finish
-(whose derivative rule gives the sensitivities) is traced.
+estimate). Under a user's ``jit`` or ``vmap`` both are traced as always. Under ``grad``/``jvp``
+the run's inputs are cut from differentiation, so the run is the exported program. The finish
+under a top-level ``grad``/``jvp`` (one differentiation directly over the evaluation, as
+``jax.grad(f)(x)`` called outside any other transformation) runs as two exported programs
+(:func:`differentiated`): the finish on the primal values and its Jacobian with respect to the
+task's arrays; otherwise (``jacfwd``, ``hessian``, under ``vmap``) its
+derivative is traced.
 
 The exports live in the persistent compilation cache's directory (``jax_compilation_cache_dir``,
 set by :func:`ldap_jax.enable_compilation_cache`), under ``ldap_jax_exports/``; without a cache
@@ -52,7 +56,7 @@ import equinox as eqx
 import jax
 import numpy as np
 
-__all__ = ["enabled", "export_dir", "call"]
+__all__ = ["enabled", "export_dir", "call", "differentiated"]
 
 SUBDIR = "ldap_jax_exports"
 _ADDRESS = re.compile(r" at 0x[0-9a-fA-F]+")
@@ -276,6 +280,130 @@ def call(
         return NotImplemented
     with _outside_traces(inside):
         return runner(leaves)
+
+
+#: the most Jacobian columns (scalars of the arrays it is taken with respect to) an exported
+#: derivative computes; above, the derivative is traced as written
+MAX_COLUMNS = 1000
+
+
+def differentiated(
+    name: str, fun: Callable, args: tuple, out_template: Callable[[], Any], n_wrt: int = 1
+) -> Any:
+    """``fun(*args)`` under a top-level ``jax.grad``/``jax.jvp`` through two exported programs, or
+    ``NotImplemented`` where it cannot (see below).
+
+    Where one differentiation trace lies directly over the evaluation (``jax.grad(f)(x)`` or
+    ``jax.jvp`` outside any other transformation) and every traced leaf of ``args`` is an
+    inexact array of that trace with a concrete primal value, among the leaves of the first
+    ``n_wrt`` arguments (for ``lc.solve``'s finish: the task), ``fun`` runs on the primal values
+    (the program :func:`call` serves as ``name``) and its Jacobian ``J_ij = d out_i / d theta_j``
+    with respect to every inexact leaf ``theta_j`` of those arguments (forward mode, one column
+    per scalar, at most :data:`MAX_COLUMNS`) is a second exported program, ``name +
+    "_jacobian"``: one program whichever of them a derivative traces (the mass, the goal, both).
+    The outputs' tangents are ``sum_j J_ij . t_j`` over the traced leaves, a contraction linear
+    in the tangents that JAX transposes for reverse mode, so a new process neither traces nor
+    differentiates ``fun``.
+
+    The derivative is first order: the Jacobian is a constant of the contraction. Under a second
+    differentiation (``jax.hessian``), ``jacfwd`` (``vmap`` of ``jvp``), a ``vmap`` or a staging
+    trace, with a traced leaf that is not such an array, or above :data:`MAX_COLUMNS`, it
+    declines and ``fun``'s derivative is traced as written.
+    """
+    if not enabled():
+        return NotImplemented
+    try:
+        from jax._src import core
+        from jax._src.interpreters import ad
+
+        trace = core.trace_ctx.trace
+        if not isinstance(trace, (ad.JVPTrace, ad.LinearizeTrace)) or not isinstance(
+            trace.parent_trace, core.EvalTrace
+        ):
+            return NotImplemented
+        if core.trace_ctx.axis_env is not core.top_axis_env:  # pragma: no cover - a named axis
+            return NotImplemented
+    except (ImportError, AttributeError):  # pragma: no cover - a future JAX
+        return NotImplemented
+    leaves, treedef = jax.tree_util.tree_flatten(args)
+    n_first = len(jax.tree_util.tree_leaves(args[:n_wrt]))  # their leaves come first
+    primals, traced = [], []
+    for i, x in enumerate(leaves):
+        if isinstance(x, core.Tracer):
+            primal = getattr(x, "primal", None)
+            if (
+                i >= n_first
+                or x._trace is not trace
+                or isinstance(primal, core.Tracer)
+                or not eqx.is_inexact_array(primal)
+            ):
+                return NotImplemented
+            traced.append(i)
+            x = primal
+        primals.append(x)
+    positions = [i for i in range(n_first) if eqx.is_inexact_array(primals[i])]
+    if sum(int(np.size(primals[i])) for i in positions) > MAX_COLUMNS:
+        return NotImplemented
+    primal_args = jax.tree_util.tree_unflatten(treedef, primals)
+    with _outside_traces(True):
+        out = call(name, fun, primal_args, out_template, top_level=True)
+        if out is NotImplemented or not traced:
+            return out
+        flat, out_def = jax.tree_util.tree_flatten(out)
+        inexact = [k for k, o in enumerate(flat) if eqx.is_inexact_array(o)]
+        jac = call(
+            name + "_jacobian",
+            _jacobian_of(fun),
+            (primal_args, tuple(positions)),
+            lambda: [[0] * len(positions) for _ in inexact],
+        )
+    if jac is NotImplemented:
+        return NotImplemented
+    columns = [positions.index(i) for i in traced]
+    jac = [[row[c] for c in columns] for row in jac]
+    tangents = _with_tangents([flat[k] for k in inexact], jac, [leaves[i] for i in traced])
+    for k, value in zip(inexact, tangents):
+        flat[k] = value
+    return jax.tree_util.tree_unflatten(out_def, flat)
+
+
+def _jacobian_of(fun: Callable) -> Callable:
+    """``(args, positions) -> J``: the Jacobian (forward mode) of ``fun(*args)``'s inexact output
+    leaves with respect to ``args``' leaves at ``positions``, ``J[i][j]`` of shape
+    ``out_i.shape + leaf_j.shape``."""
+
+    def jacobian(args, positions):
+        leaves, treedef = jax.tree_util.tree_flatten(args)
+
+        def outputs(chosen):
+            new = list(leaves)
+            for i, x in zip(positions, chosen):
+                new[i] = x
+            out = fun(*jax.tree_util.tree_unflatten(treedef, new))
+            return [o for o in jax.tree_util.tree_leaves(out) if eqx.is_inexact_array(o)]
+
+        return jax.jacfwd(outputs)([leaves[i] for i in positions])
+
+    return jacobian
+
+
+@jax.custom_jvp
+def _with_tangents(values, jac, thetas):
+    """``values``, whose tangents are the Jacobian ``jac``'s contraction with those of ``thetas``."""
+    return values
+
+
+@_with_tangents.defjvp
+def _with_tangents_jvp(primals, tangents):
+    import jax.numpy as jnp
+
+    values, jac, thetas = primals
+    t_thetas = tangents[2]
+    out = []
+    for value, row in zip(values, jac):
+        t = sum(jnp.tensordot(j, dt, axes=jnp.ndim(dt)) for j, dt in zip(row, t_thetas))
+        out.append(jnp.asarray(t, value.dtype))
+    return values, out
 
 
 def _can_leave_traces() -> bool:

@@ -128,7 +128,8 @@ def solve(
     compilation cache on (:func:`ldap_jax.enable_compilation_cache`), the solver's programs are
     also kept traced (``jax.export``, in the cache folder): a new process that solves a problem of
     the same structure (other goal, bounds, model parameters or tolerances) neither traces nor
-    compiles them (``LDAP_JAX_EXPORT=0`` turns this off).
+    compiles them (``LDAP_JAX_EXPORT=0`` turns this off). So are, under a top-level ``jax.grad``
+    or ``jax.jvp``, the derivative's: the solution's Jacobian with respect to the task's arrays.
 
     Args:
         task: a task with per-step sampled controls (:class:`SampledControls`).
@@ -191,11 +192,13 @@ def _solve_one(task: Task, params0, options: IPMOptions) -> Solution:
 
 
 def _finished(task: Task, st: IPMState, violation: Array, params0) -> Solution:
-    """:func:`_finish` through its exported program where it can be (at the top level)."""
-    sol = _export.call(
-        "finish", _finish.__wrapped__, (task, st, violation), lambda: _template(params0), top_level=True
-    )
-    return _finish(task, st, violation) if sol is NotImplemented else sol
+    """:func:`_finish` through its exported program where it can be: at the top level, and under a
+    top-level ``grad``/``jvp`` (the sensitivities) with its exported Jacobian."""
+    args = (task, st, violation)
+    sol = _export.call("finish", _finish.__wrapped__, args, lambda: _template(params0), top_level=True)
+    if sol is NotImplemented:
+        sol = _export.differentiated("finish", _finish.__wrapped__, args, lambda: _template(params0))
+    return _finish(*args) if sol is NotImplemented else sol
 
 
 def _run_template():
