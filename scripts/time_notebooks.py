@@ -55,11 +55,10 @@ print(json.dumps({"cells": times, "total": time.perf_counter() - t0}))
 """
 
 
-def notebook(prefix: str) -> pathlib.Path:
+def notebook(prefix: str) -> pathlib.Path | None:
+    """The one notebook whose name starts with ``prefix``, else ``None``."""
     found = sorted((ROOT / "notebooks").glob(f"{prefix}*.ipynb"))
-    if len(found) != 1:
-        raise SystemExit(f"no single notebook starts with {prefix!r}: {found}")
-    return found[0]
+    return found[0] if len(found) == 1 and prefix else None
 
 
 def run(path: pathlib.Path, cache: str, events: bool = False) -> dict:
@@ -97,8 +96,13 @@ def main() -> None:
         "--events", action="store_true", help="per cell, its longest JAX tracing, lowering and compilations"
     )
     args = parser.parse_args()
-    for prefix in args.notebooks:
-        path = notebook(prefix)
+    paths = [notebook(prefix) for prefix in args.notebooks]
+    for prefix, path in zip(args.notebooks, paths):
+        if path is None:
+            parser.error(f"notebooks: no single notebook in notebooks/ starts with {prefix!r}")
+    if args.cache and pathlib.Path(args.cache).exists() and not pathlib.Path(args.cache).is_dir():
+        parser.error(f"--cache: {args.cache!r} exists and is not a folder")
+    for path in paths:
         if args.cache:
             show(path.name, "run", run(path, args.cache, args.events))
             continue

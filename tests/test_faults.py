@@ -1232,7 +1232,12 @@ SCRIPT_CASES = {
     "bench_control --integrator rk5": ("bench_control.py", ["--integrator", "rk5"], "--integrator"),
     "bench_control --robustness 0,x": ("bench_control.py", ["--robustness", "0,x"], "--robustness"),
     "bench_control --robustness -1": ("bench_control.py", ["--robustness=-1"], "--robustness"),
+    "time_notebooks 99": ("time_notebooks.py", ["99"], "notebooks"),
+    "time_notebooks 0": ("time_notebooks.py", ["0"], "notebooks"),
+    "time_notebooks --cache file": ("time_notebooks.py", ["01", "--cache", FILE], "--cache"),
 }
+#: the scripts that write no files (no ``--out``)
+NO_OUT = {"time_notebooks.py"}
 
 
 @pytest.mark.parametrize("name", list(SCRIPT_CASES))
@@ -1240,7 +1245,7 @@ def test_script_rejects_bad_flags_before_any_work(name, script_env, tmp_path):
     script, argv, flag = SCRIPT_CASES[name]
     env, existing = script_env
     argv = [existing if a == FILE else a for a in argv]
-    if "--out" not in argv:
+    if "--out" not in argv and script not in NO_OUT:
         argv = [*argv, "--out", str(tmp_path / "out")]  # never the working directory
     out = subprocess.run(
         [sys.executable, os.path.join(ROOT, "scripts", script), *argv],
