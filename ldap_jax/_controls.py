@@ -92,6 +92,20 @@ class AbstractControls(eqx.Module):
         """
         return lambda t: jax.vmap(self.__call__)(t + h * fractions)
 
+    def node_sampler(
+        self, *, reverse_only: bool = False
+    ) -> Callable[[Array], Float[Array, " n_channels"]] | None:
+        """A function ``t -> controls(t)`` for a rollout that carries the controls from step to
+        step, or ``None`` (the default: the rollout calls :meth:`sampler` at every step).
+
+        A symmetric (order-2) integrator that reads the controls at the two ends of its step only
+        (fractions ``(0, 1)``) then evaluates them once per step, at its end
+        ``t_{k+1} = t0 + (k + 1) h``, and the next step reads them from the carry (:class:`Sinusoids`
+        does this: one sine per term and step instead of a sine and a cosine). The values must be
+        the controls at ``t`` (to round-off: they replace :meth:`sampler`'s at the fractions 0
+        and 1)."""
+        return None
+
 
 class Sinusoids(AbstractControls):
     """Sums of sinusoids: channel ``c`` is ``sum_j A[c, j] sin(W[c, j] t + P[c, j])``.
@@ -190,6 +204,35 @@ class Sinusoids(AbstractControls):
                         col = col + a * (s * dcv + c * dsv)
                 columns.append(col)
             return jnp.stack(columns, axis=-1)
+
+        return sample
+
+    def node_sampler(self, *, reverse_only: bool = False):
+        """``t -> sum_j A[c, j] sin(W[c, j] t + P[c, j])``, term by term on scalars (contiguous
+        vectors under ``vmap``, as :meth:`sampler`), one sine per term (``sincos``'s, finished in
+        one kernel). A rollout whose integrator reads the controls at the ends of its steps only
+        (order-2 RDP, DLA, GNI) calls it once per step, at the step's end, and carries the
+        values into the next step: the angle addition of :meth:`sampler` needs a sine and a
+        cosine per term at every step's start (8 of the 39 XLA kernels of a snakeboard step).
+        JAX differentiates it (``reverse_only`` is accepted for the rollout's call and changes
+        nothing: JAX's derivative keeps the three cotangents of a term, and a hand-written VJP
+        sharing one argument reduction between the sine and the cosine ran no faster)."""
+        n_ch, n_terms = self.amplitude.shape[-2:]
+        terms = [
+            [(self.amplitude[i, j], self.frequency[i, j], self.phase[i, j]) for j in range(n_terms)]
+            for i in range(n_ch)
+        ]
+
+        def sample(t):
+            if not n_ch:
+                return jnp.zeros((0,), t.dtype)
+            columns = []
+            for i in range(n_ch):
+                col = 0.0
+                for a, w, p in terms[i]:
+                    col = col + a * sincos(w * t + p, whole=True)[0]
+                columns.append(col)
+            return jnp.stack(columns)
 
         return sample
 

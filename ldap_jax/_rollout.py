@@ -6,7 +6,9 @@ dynamics of the control module all run it; the closed-form car and snakeboard ke
 through the integrator (their state is the kernel's), not through a loop of their own.
 
 Per step ``k`` (node ``k`` to node ``k + 1``): read the controls at the integrator's fractions of
-the step (or ask the feedback policy, with the state of node ``k``), step, observe node ``k + 1``
+the step (or ask the feedback policy, with the state of node ``k``; an integrator that reads them
+at the step's two ends only takes node ``k``'s from the carry and evaluates node ``k + 1``'s, when
+the controls offer :meth:`~ldap_jax.AbstractControls.node_sampler`), step, observe node ``k + 1``
 (configuration, velocity from the carried momenta, diagnostics), accumulate the work, apply the
 failure rule (:func:`ldap_jax._results.first_failure`: the first failure wins, the state is
 frozen, every later node is NaN) and, with diagnostics on, the divergence test on the energy
@@ -117,6 +119,7 @@ class _Carry(NamedTuple):
     iterations: Array
     result: RESULTS
     failure_index: Array
+    c_node: tuple[Array, ...] | None  # the controls at the node (the next step's start), when carried
 
 
 def _where(mask, a, b):
@@ -244,24 +247,43 @@ def rollout(
     fractions = jnp.asarray(integrator.control_nodes, dtype)
     node_is_last = float(integrator.control_nodes[-1]) == 1.0
     policy = isinstance(controls, AbstractPolicy)
+    sample_node = None
     if policy:
         sample_open = None
     else:
         # outside forward mode, the sinusoids' hand-written VJP (the same values)
         reverse_only = {"reverse_only": True} if isinstance(controls, Sinusoids) and not forward_mode else {}
         sample_open = controls.sampler(h, fractions, **reverse_only)
+        if tuple(float(f) for f in integrator.control_nodes) == (0.0, 1.0) and integrator.order == 2:
+            # the controls at the step's end carried into the next step (evaluated once per node).
+            # The symmetric steps only: at alpha != 1/2 (order 1) the round-off of the carried
+            # values took a float32 comparison of the car's kernel with its Newton step just past
+            # its bound (tests/test_closed_form.py), and order 1 is not a step one runs for speed
+            sample_node = controls.node_sampler(**reverse_only)
+
+    def node_time(k):
+        return t0 + h * k.astype(dtype)
 
     def sample(k, obs):
-        t = t0 + h * k.astype(dtype)
+        t = node_time(k)
         if policy:
             return jax.vmap(lambda tt: controls(tt, obs.q, obs.qdot))(t + h * fractions)
         return sample_open(t)
 
     def node_controls(k, c_stage):
-        return c_stage[-1] if node_is_last else controls(t0 + h * k.astype(dtype))
+        return c_stage[-1] if node_is_last else controls(node_time(k))
+
+    def vector(columns):  # the carried controls (one scalar per channel, see step) as a vector
+        return jnp.stack(columns) if columns else jnp.zeros((0,), dtype)
 
     c_first = controls(t0, q0, qdot0) if policy else controls(t0)
-    c_stage0 = sample(jnp.zeros((), jnp.int32), Observation(q0, qdot0, *([None] * 4)))
+    k0 = jnp.zeros((), jnp.int32)
+    if sample_node is None:
+        c_node0 = None
+        c_stage0 = sample(k0, Observation(q0, qdot0, *([None] * 4)))
+    else:
+        c_node0 = tuple(sample_node(node_time(k0)))
+        c_stage0 = jnp.stack([vector(c_node0), sample_node(node_time(k0 + 1))])
     state0 = integrator.init(system, h, q0, qdot0, c_stage0)
     obs0 = _tracing.observe(integrator, system, state0, c_first)
     obs0 = obs0._replace(qdot=qdot0)  # node 0 reports the given velocity
@@ -289,7 +311,16 @@ def rollout(
         # (times the zero cotangent a discarded value gets) cannot reach the inputs as a NaN
         failed_before = carry.result != RESULTS.successful
         state_in, obs_in = _stop_if(failed_before, (carry.state, carry.obs))
-        c_stage = _stop_if(failed_before, sample(k, obs_in))
+        if sample_node is None:
+            c_stage = sample(k, obs_in)
+            c_next = None
+        else:
+            c_end = sample_node(node_time(k + 1))
+            # carried channel by channel (carried as one vector, XLA stored it twice, in two
+            # layouts: 3 kernels per step more)
+            c_next = tuple(c_end)
+            c_stage = jnp.stack([vector(carry.c_node), c_end])
+        c_stage = _stop_if(failed_before, c_stage)
         new_state, info = _tracing.step(integrator, system, h, state_in, c_stage)
         step_result = info.result
         obs, work, abs_work, impulse = carry.obs, carry.work, carry.abs_work, carry.impulse
@@ -355,6 +386,7 @@ def rollout(
             iterations=carry.iterations + info.iterations,
             result=result,
             failure_index=index,
+            c_node=c_next,
         )
         return new, emitted
 
@@ -386,7 +418,10 @@ def rollout(
         ks = j * stride + jnp.arange(stride, dtype=jnp.int32)
         carry, _ = jax.lax.scan(_policy_body(inner_body, checkpoint), carry, ks)
         if not observe_inner:  # the inner steps observed nothing: observe the segment's last node
-            c_last = node_controls(last + 1, sample(last, carry.obs))
+            if sample_node is None:
+                c_last = node_controls(last + 1, sample(last, carry.obs))
+            else:
+                c_last = vector(carry.c_node)
             carry = carry._replace(obs=_tracing.observe(integrator, system, carry.state, c_last))
         return emit(carry, carry.obs)
 
@@ -401,6 +436,7 @@ def rollout(
         iterations=jnp.zeros((), jnp.int32),
         result=initial_result,
         failure_index=jnp.where(initial_result == RESULTS.successful, n_steps, 0).astype(jnp.int32),
+        c_node=c_node0,
     )
     # every floating input of the run: a loss reading a failed node gets NaN gradients for all
     sink = jax.tree_util.tree_leaves((system, integrator, q0, qdot0, controls, t0, h))

@@ -450,8 +450,9 @@ def default_call(cfg: Config, log) -> list[dict]:
     :class:`~ldap_jax.Trajectory`, the same call read as a user writes it (``.q[-1]``: XLA drops
     what is not read, the divergence and finiteness tests stay), ``save="final",
     diagnostics=False``; the sum of a terminal cost over the batch and its gradient with respect to
-    the controls (``checkpoint=False``), also with JAX's own derivative of the sampler, and of the
-    step and the sampler, in place of their hand-written VJPs (:func:`_autodiff_problem`). Ratios:
+    the controls (``checkpoint=False``), also with JAX's own derivative of the step in place of its
+    hand-written VJP (:func:`_autodiff_problem`; the order-2 rollout carries the sinusoids from node
+    to node, differentiated by JAX, so the sampler's VJP has no part in these programs). Ratios:
     the median over ``cfg.rounds`` rounds of each round's ratio (:func:`paired_ratio`), of the wall
     times and of the process CPU times (less sensitive to other processes on a shared machine),
     and the ratio of the minima of the wall times; the minor page faults of a call (median)."""
@@ -481,7 +482,6 @@ def default_call(cfg: Config, log) -> list[dict]:
         "default, .q[-1]": call(lambda tr: tr.q[-1]),
         "terminal cost": (jax.jit(loss), (ctl,)),
         "its gradient": (jax.jit(jax.grad(loss)), (ctl,)),
-        "its gradient, the step's VJP alone": (jax.jit(jax.grad(loss)), (ad_ctl,)),
         "its gradient, JAX's derivatives": (jax.jit(jax.grad(ad_loss)), (ad_ctl,)),
     }
     for f, args in fns.values():

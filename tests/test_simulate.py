@@ -247,25 +247,30 @@ def test_sampled_controls_reproduce_rdp_on_the_nodes():
 def test_sinusoid_sampler_equals_the_controls_at_the_fractions(dtype):
     """The rollouts' sampler (angle addition, one sincos of the step's angles) equals the controls
     evaluated at ``t + f h``, to a few ulps of the amplitudes' sum, for 3 channels x 4 terms, one
-    term, and no channels."""
+    term, and no channels; so does the node sampler (one sine per term, the order-2 rollouts'),
+    at ``t``."""
     rng = np.random.default_rng(5)
     eps = float(jnp.finfo(dtype).eps)
     fractions = jnp.asarray([0.0, 0.5, 0.2113, 1.0], dtype)
 
     @jax.jit  # one program per shape (op by op, each operation would compile alone)
     def both(ctl, t, h):
-        return ctl.sampler(h, fractions)(t), jax.vmap(ctl)(t + h * fractions)
+        return ctl.sampler(h, fractions)(t), jax.vmap(ctl)(t + h * fractions), ctl.node_sampler()(t), ctl(t)
 
     for n_ch, n_terms in ((3, 4), (2, 1), (0, 2)):
         a, w, p = (rng.uniform(-2, 2, (n_ch, n_terms)).astype(dtype) for _ in range(3))
         a, w3, p = (jnp.asarray(x, dtype) for x in (a, 3 * w, p))  # 3 * w on the host, in dtype
         ctl = lj.Sinusoids(amplitude=a, frequency=w3, phase=p)
         for t, h in ((0.0, 0.1), (7.3, 0.013), (95.0, 0.5)):
-            got, want = both(ctl, jnp.asarray(t, dtype), jnp.asarray(h, dtype))
+            got, want, node, at_t = both(ctl, jnp.asarray(t, dtype), jnp.asarray(h, dtype))
             assert got.shape == want.shape == (4, n_ch) and got.dtype == dtype
             # the angles w (t + f h) differ by rounding from w t + w f h: |w| (|t| + h) eps each
-            tol = 8 * eps * (1 + 6 * (float(t) + float(h))) * float(jnp.sum(jnp.abs(a), initial=0.0))
+            amplitudes = float(jnp.sum(jnp.abs(a), initial=0.0))
+            tol = 8 * eps * (1 + 6 * (float(t) + float(h))) * amplitudes
             np.testing.assert_allclose(got, want, rtol=0, atol=tol)
+            # the same angles w t + p: the sines' rounding and the sum's order only
+            assert node.shape == at_t.shape == (n_ch,) and node.dtype == dtype
+            np.testing.assert_allclose(node, at_t, rtol=0, atol=4 * eps * amplitudes)
 
 
 def test_save_options_select_the_same_nodes():
