@@ -438,7 +438,7 @@ def _load_or_export(name, key, fun, leaves, static, treedef, out_template) -> Ca
 
     program_path, meta_path = _paths(key)
     out_def = _out_structure(out_template)
-    exported, lapack = None, True
+    exported, lapack, custom = None, True, True
     if program_path.exists() and meta_path.exists():
         try:
             meta = json.loads(meta_path.read_text())
@@ -448,6 +448,7 @@ def _load_or_export(name, key, fun, leaves, static, treedef, out_template) -> Ca
                 and candidate.out_tree.num_leaves == out_def.num_leaves
             ):
                 exported, lapack = candidate, meta.get("lapack", True) is not False
+                custom = meta.get("custom_calls", True) is not False
         except Exception:  # a damaged or foreign file: export again
             exported = None
     if exported is None:
@@ -466,9 +467,11 @@ def _load_or_export(name, key, fun, leaves, static, treedef, out_template) -> Ca
             exported = _without_locations(jex.export(jax.jit(flat))(*avals))
             if traced_out[-1] != out_def:  # the template does not describe the output
                 return None
-            lapack = "lapack" in exported.mlir_module()  # a LAPACK call (none in the solver's)
+            text = exported.mlir_module()
+            lapack = "lapack" in text  # a LAPACK call (none in the solver's)
+            custom = "custom_call" in text  # any call of a kernel registered at run time
             _write(program_path, bytes(exported.serialize()))
-            meta = {"out": _describe(out_def, strict=False), "lapack": lapack}
+            meta = {"out": _describe(out_def, strict=False), "lapack": lapack, "custom_calls": custom}
             _write(meta_path, json.dumps(meta).encode())
         except Exception as err:  # e.g. a host callback: not exportable, trace as usual
             warnings.warn(
@@ -485,15 +488,18 @@ def _load_or_export(name, key, fun, leaves, static, treedef, out_template) -> Ca
         # became a weak-typed array) meets the same compiled program, not a copy compiled again
         xs = [np.asarray(x) for x in xs]
         if executable[0] is None:
-            with _lock:
+            with _lock:  # the first call (the one that lowers, compiles or loads) in one thread
                 if executable[0] is None:
-                    executable[0] = _executable(key, compiled, exported, xs, lapack)
+                    program = _executable(key, compiled, exported, xs, lapack, custom)
+                    outs = program(*xs)
+                    executable[0] = program
+                    return jax.tree_util.tree_unflatten(out_def, outs)
         return jax.tree_util.tree_unflatten(out_def, executable[0](*xs))
 
     return runner
 
 
-def _executable(key: str, compiled, exported, xs: list, lapack: bool) -> Callable:
+def _executable(key: str, compiled, exported, xs: list, lapack: bool, custom: bool) -> Callable:
     """The compiled program of an export for the arguments ``xs``.
 
     Through ``jax.jit`` a process lowers the exported module (0.2-0.4 s of a warm first solve) to
@@ -502,7 +508,13 @@ def _executable(key: str, compiled, exported, xs: list, lapack: bool) -> Callabl
     backend's platform, its version, the devices and ``XLA_FLAGS``), and later processes load it
     without lowering. An executable that XLA read back from JAX's own cache serialises without
     its kernels, so only one compiled in this process is stored; one that does not load is
-    compiled through ``jax.jit`` as before."""
+    compiled through ``jax.jit`` as before. A program with a custom call (a LAPACK kernel) is
+    never stored: JAX registers those kernels while lowering, and an executable loaded without
+    that crashed the process at its first call (the gait tracker's)."""
+    if custom:
+        if lapack:
+            return compiled
+        return _lowered_without_lapack_setup(compiled)
     path = _executable_path(key)
     in_tree = jax.tree_util.tree_structure((tuple(xs), {}))
     if path is not None and path.exists():
@@ -539,6 +551,21 @@ def _executable(key: str, compiled, exported, xs: list, lapack: bool) -> Callabl
         except Exception:  # pragma: no cover - a backend that cannot serialise: not stored
             pass
     return executable
+
+
+def _lowered_without_lapack_setup(compiled) -> Callable:
+    """``compiled`` (``jax.jit``), its first call (which lowers it) without JAX's LAPACK set-up."""
+    state = [False]
+
+    def call(*xs):
+        if state[0]:
+            return compiled(*xs)
+        with _without_lapack_setup():
+            out = compiled(*xs)
+        state[0] = True
+        return out
+
+    return call
 
 
 def _checked_first_call(loaded, compiled, path: pathlib.Path, lapack: bool) -> Callable:
