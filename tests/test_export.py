@@ -270,6 +270,39 @@ def test_a_new_process_loads_the_executable_the_first_one_compiled(tmp_path):
         np.testing.assert_allclose(np.asarray(r["params"]), np.asarray(want.params), rtol=1e-12, atol=1e-12)
 
 
+#: a program with a LAPACK call (a custom call) through an export, in a new process
+LAPACK_PROCESS = """
+import json, sys
+import jax
+jax.config.update("jax_enable_x64", True)
+import jax.numpy as jnp
+import numpy as np
+import ldap_jax as lj
+from ldap_jax.control import _export
+lj.enable_compilation_cache(sys.argv[1])
+a = np.array([[4.0, 1.0, 0.0], [1.0, 3.0, 1.0], [0.0, 1.0, 2.0]])
+out = _export.call("lapack_probe", lambda a, b: (jnp.linalg.solve(a, b),), (a, np.ones(3)), lambda: (0,))
+print(json.dumps({"x": np.asarray(out[0]).tolist()}))
+"""
+
+
+def test_a_program_with_custom_calls_is_never_loaded_as_an_executable(tmp_path):
+    """A program calling LAPACK (a custom call, whose kernels JAX registers while lowering) is
+    exported but its executable is not stored: a second process lowers it as before (a loaded
+    one crashed at its first call) and both solve the system."""
+    env = dict(os.environ, LDAP_JAX_EXPORT="1")
+    cache = tmp_path / "cache"
+    for _ in range(2):
+        cmd = [sys.executable, "-c", LAPACK_PROCESS, str(cache)]
+        res = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
+        assert res.returncode == 0, res.stderr[-3000:]
+        x = json.loads(res.stdout.strip().splitlines()[-1])["x"]
+        a = np.array([[4.0, 1.0, 0.0], [1.0, 3.0, 1.0], [0.0, 1.0, 2.0]])
+        np.testing.assert_allclose(a @ np.asarray(x), np.ones(3), rtol=0, atol=1e-14)
+        assert list((cache / _export.SUBDIR).glob("*.jaxexport"))
+        assert not list((cache / _export.SUBDIR).glob("*.executable"))
+
+
 #: prints the key of the roller racer's gait (an lj.System of library functions) in a new process
 RACER_KEY = """
 import jax
