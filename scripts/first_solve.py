@@ -4,6 +4,7 @@
     python scripts/first_solve.py --runs 3        # three warm processes
     python scripts/first_solve.py --cache DIR --runs 0   # one process on the cache DIR
     python scripts/first_solve.py --no-export     # the compilation cache only (no exported programs)
+    python scripts/first_solve.py --program       # the run program alone: XLA's time, its size
 
 Each measurement is a new Python process (``--child``) that imports the library, turns on the
 persistent compilation cache in a directory of this script's own (a fresh temporary one, so the
@@ -15,6 +16,11 @@ first process is cold and the later ones warm; ``--cache DIR`` to keep it) and t
 * ``second``: a second solve of the same task in the same process (the repeat time);
 * per program: JAX's own monitoring events (``jax.monitoring``): Python tracing to a jaxpr,
   lowering to StableHLO, XLA compilation, persistent-cache reads, summed per program name.
+
+``--program [--task NAME] [--hlo FILE]`` instead lowers a task's interior-point run program
+(``parallel_park`` by default) in this process, compiles it with the library's XLA options and
+prints the compilation's wall and CPU time, the optimised HLO's instruction, fusion and while-loop
+counts (``--hlo`` writes its text) and the run's time (the least of 7 calls).
 
 With ``--no-export`` the child sets ``LDAP_JAX_EXPORT=0`` (``lc.solve`` then never uses an
 exported program). Prints a table; ``--json FILE`` writes the numbers. The children inherit the
@@ -88,6 +94,45 @@ def child(cache: str) -> dict:
     }
 
 
+def program(task_name: str, hlo: str | None) -> None:
+    """The run program of ``lc.<task_name>()`` alone: compilation time, size, run time."""
+    import re
+
+    import equinox as eqx
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import ldap_jax as lj
+    from ldap_jax import control as lc
+    from ldap_jax.control import _solve
+
+    task = getattr(lc, task_name)()
+    options, params0, _ = _solve._checked(task, None, 1e-8, 1000, "base", 0.1, None)
+    t0 = time.perf_counter()
+    lowered = eqx.filter_jit(_solve._run_one).lower(task, params0, options)
+    t_lower = time.perf_counter() - t0
+    c0, t0 = time.process_time(), time.perf_counter()
+    compiled = lowered.compile(lj.compiler_options())
+    t_compile, c_compile = time.perf_counter() - t0, time.process_time() - c0
+    text = compiled.compiled.as_text()
+    if hlo:
+        with open(hlo, "w") as f:
+            f.write(text)
+    instructions = sum(1 for line in text.splitlines() if re.match(r"\s+(ROOT )?%?[\w.\-]+ = ", line))
+    fusions = len(re.findall(r"^%?fused", text, re.M))
+    runs = []
+    for _ in range(7):
+        t0 = time.perf_counter()
+        st, _ = compiled(task, params0, options)
+        jax.block_until_ready(st)
+        runs.append(time.perf_counter() - t0)
+    print(
+        f"{task_name}: lowering {t_lower:.2f} s, XLA compilation {t_compile:.2f} s (CPU {c_compile:.2f} s), "
+        f"{instructions} instructions, {fusions} fusions, {text.count(' while(')} while loops; "
+        f"run {1e3 * min(runs):.1f} ms ({int(st.iteration)} iterations, KKT error {float(st.error):.3e})"
+    )
+
+
 def run_child(cache: str, export: bool) -> dict:
     env = dict(os.environ)
     if not export:
@@ -131,7 +176,13 @@ def main() -> None:
     p.add_argument("--no-export", action="store_true", help="do not use exported solver programs")
     p.add_argument("--top", type=int, default=8, help="programs listed per process")
     p.add_argument("--json", default=None, help="write the measurements to this file")
+    p.add_argument("--program", action="store_true", help="time and count the run program alone")
+    p.add_argument("--task", default="parallel_park", help="the task of --program")
+    p.add_argument("--hlo", default=None, help="with --program: write the optimised HLO here")
     args = p.parse_args()
+    if args.program:
+        program(args.task, args.hlo)
+        return
     if args.child:
         print(json.dumps(child(args.cache)))
         return

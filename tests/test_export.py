@@ -204,14 +204,16 @@ import numpy as np
 import ldap_jax as lj
 from ldap_jax import control as lc
 lj.enable_compilation_cache(sys.argv[1])
-traced = []
+traced, lowered = [], []
 def listen(event, duration, **kwargs):
     if event == "/jax/core/compile/jaxpr_trace_duration":
         traced.append(kwargs.get("fun_name"))
+    if event == "/jax/core/compile/jaxpr_to_mlir_module_duration":
+        lowered.append(kwargs.get("fun_name"))
 jax.monitoring.register_event_duration_secs_listener(listen)
 sol = lc.solve(lc.parallel_park(integrator=lj.RDP(), n_steps=40))
 print(json.dumps({"params": np.asarray(sol.params).tolist(), "iterations": int(sol.iterations),
-                  "traced": traced, "scipy": "scipy.linalg" in sys.modules}))
+                  "traced": traced, "lowered": lowered, "scipy": "scipy.linalg" in sys.modules}))
 """
 
 
@@ -237,6 +239,68 @@ def test_a_new_process_solves_from_the_export(tmp_path):
     for run in runs:
         assert run["iterations"] == int(want.iterations)
         np.testing.assert_allclose(np.asarray(run["params"]), np.asarray(want.params), rtol=1e-12, atol=1e-12)
+
+
+def test_a_new_process_loads_the_executable_the_first_one_compiled(tmp_path):
+    """On a fresh cache folder the process that compiles the exported programs stores their
+    executables next to the exports; a second process loads them without lowering anything, and
+    a third, whose executables are damaged, lowers and compiles through JAX's cache as before;
+    all three give the traced solution to 1e-12."""
+    env = dict(os.environ, LDAP_JAX_EXPORT="1")
+    cache = tmp_path / "cache"
+
+    def run():
+        cmd = [sys.executable, "-c", NEW_PROCESS, str(cache)]
+        res = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900)
+        assert res.returncode == 0, res.stderr[-3000:]
+        return json.loads(res.stdout.strip().splitlines()[-1])
+
+    runs = [run()]
+    stored = sorted((cache / _export.SUBDIR).glob("*.executable"))
+    assert len(stored) == 2, stored  # the run's and the finish's
+    runs.append(run())
+    assert runs[1]["lowered"] == [] and runs[1]["traced"] == []
+    for path in stored:
+        path.write_bytes(b"damaged")
+    runs.append(run())
+    assert {"jit(exported_run)", "jit(exported_finish)"} <= set(runs[2]["lowered"])
+    want = _traced(lc.parallel_park(integrator=lj.RDP(), n_steps=40))
+    for r in runs:
+        assert r["iterations"] == int(want.iterations)
+        np.testing.assert_allclose(np.asarray(r["params"]), np.asarray(want.params), rtol=1e-12, atol=1e-12)
+
+
+#: a program with a LAPACK call (a custom call) through an export, in a new process
+LAPACK_PROCESS = """
+import json, sys
+import jax
+jax.config.update("jax_enable_x64", True)
+import jax.numpy as jnp
+import numpy as np
+import ldap_jax as lj
+from ldap_jax.control import _export
+lj.enable_compilation_cache(sys.argv[1])
+a = np.array([[4.0, 1.0, 0.0], [1.0, 3.0, 1.0], [0.0, 1.0, 2.0]])
+out = _export.call("lapack_probe", lambda a, b: (jnp.linalg.solve(a, b),), (a, np.ones(3)), lambda: (0,))
+print(json.dumps({"x": np.asarray(out[0]).tolist()}))
+"""
+
+
+def test_a_program_with_custom_calls_is_never_loaded_as_an_executable(tmp_path):
+    """A program calling LAPACK (a custom call, whose kernels JAX registers while lowering) is
+    exported but its executable is not stored: a second process lowers it as before (a loaded
+    one crashed at its first call) and both solve the system."""
+    env = dict(os.environ, LDAP_JAX_EXPORT="1")
+    cache = tmp_path / "cache"
+    for _ in range(2):
+        cmd = [sys.executable, "-c", LAPACK_PROCESS, str(cache)]
+        res = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
+        assert res.returncode == 0, res.stderr[-3000:]
+        x = json.loads(res.stdout.strip().splitlines()[-1])["x"]
+        a = np.array([[4.0, 1.0, 0.0], [1.0, 3.0, 1.0], [0.0, 1.0, 2.0]])
+        np.testing.assert_allclose(a @ np.asarray(x), np.ones(3), rtol=0, atol=1e-14)
+        assert list((cache / _export.SUBDIR).glob("*.jaxexport"))
+        assert not list((cache / _export.SUBDIR).glob("*.executable"))
 
 
 #: prints the key of the roller racer's gait (an lj.System of library functions) in a new process

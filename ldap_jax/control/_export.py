@@ -35,6 +35,10 @@ derivative is traced.
 The exports live in the persistent compilation cache's directory (``jax_compilation_cache_dir``,
 set by :func:`ldap_jax.enable_compilation_cache`), under ``ldap_jax_exports/``; without a cache
 directory nothing is exported. ``LDAP_JAX_EXPORT=0`` turns exports off.
+
+The process that compiles an exported program also stores its executable there (keyed by the
+export's key and the machine's backend, see :func:`_executable`): a later process loads it
+directly, without lowering the exported module to look it up in JAX's cache.
 """
 
 from __future__ import annotations
@@ -49,6 +53,7 @@ import tempfile
 import threading
 import types
 import warnings
+import zlib
 from collections.abc import Callable
 from typing import Any
 
@@ -433,7 +438,7 @@ def _load_or_export(name, key, fun, leaves, static, treedef, out_template) -> Ca
 
     program_path, meta_path = _paths(key)
     out_def = _out_structure(out_template)
-    exported, lapack = None, True
+    exported, lapack, custom = None, True, True
     if program_path.exists() and meta_path.exists():
         try:
             meta = json.loads(meta_path.read_text())
@@ -443,6 +448,7 @@ def _load_or_export(name, key, fun, leaves, static, treedef, out_template) -> Ca
                 and candidate.out_tree.num_leaves == out_def.num_leaves
             ):
                 exported, lapack = candidate, meta.get("lapack", True) is not False
+                custom = meta.get("custom_calls", True) is not False
         except Exception:  # a damaged or foreign file: export again
             exported = None
     if exported is None:
@@ -461,9 +467,11 @@ def _load_or_export(name, key, fun, leaves, static, treedef, out_template) -> Ca
             exported = _without_locations(jex.export(jax.jit(flat))(*avals))
             if traced_out[-1] != out_def:  # the template does not describe the output
                 return None
-            lapack = "lapack" in exported.mlir_module()  # a LAPACK call (none in the solver's)
+            text = exported.mlir_module()
+            lapack = "lapack" in text  # a LAPACK call (none in the solver's)
+            custom = "custom_call" in text  # any call of a kernel registered at run time
             _write(program_path, bytes(exported.serialize()))
-            meta = {"out": _describe(out_def, strict=False), "lapack": lapack}
+            meta = {"out": _describe(out_def, strict=False), "lapack": lapack, "custom_calls": custom}
             _write(meta_path, json.dumps(meta).encode())
         except Exception as err:  # e.g. a host callback: not exportable, trace as usual
             warnings.warn(
@@ -473,21 +481,131 @@ def _load_or_export(name, key, fun, leaves, static, treedef, out_template) -> Ca
             )
             return None
     compiled = _compiled(exported, name)
-    first = [not lapack]
+    executable: list = [None]  # the compiled program, once the first call has it
 
     def runner(xs):
         # NumPy arrays: never weakly typed, so a value made under grad (a Python number that
         # became a weak-typed array) meets the same compiled program, not a copy compiled again
         xs = [np.asarray(x) for x in xs]
-        if first[0]:  # the call that lowers the program
-            first[0] = False
-            with _lock, _without_lapack_setup():
-                outs = compiled(*xs)
-        else:
-            outs = compiled(*xs)
-        return jax.tree_util.tree_unflatten(out_def, outs)
+        if executable[0] is None:
+            with _lock:  # the first call (the one that lowers, compiles or loads) in one thread
+                if executable[0] is None:
+                    program = _executable(key, compiled, exported, xs, lapack, custom)
+                    outs = program(*xs)
+                    executable[0] = program
+                    return jax.tree_util.tree_unflatten(out_def, outs)
+        return jax.tree_util.tree_unflatten(out_def, executable[0](*xs))
 
     return runner
+
+
+def _executable(key: str, compiled, exported, xs: list, lapack: bool, custom: bool) -> Callable:
+    """The compiled program of an export for the arguments ``xs``.
+
+    Through ``jax.jit`` a process lowers the exported module (0.2-0.4 s of a warm first solve) to
+    look the program up in JAX's persistent cache. Instead, the process that compiles the program
+    stores its executable next to the export (``<key>.<machine>.executable``, keyed by the
+    backend's platform, its version, the devices and ``XLA_FLAGS``), and later processes load it
+    without lowering. An executable that XLA read back from JAX's own cache serialises without
+    its kernels, so only one compiled in this process is stored; one that does not load is
+    compiled through ``jax.jit`` as before. A program with a custom call (a LAPACK kernel) is
+    never stored: JAX registers those kernels while lowering, and an executable loaded without
+    that crashed the process at its first call (the gait tracker's)."""
+    if custom:
+        if lapack:
+            return compiled
+        return _lowered_without_lapack_setup(compiled)
+    path = _executable_path(key)
+    in_tree = jax.tree_util.tree_structure((tuple(xs), {}))
+    if path is not None and path.exists():
+        try:
+            from jax.experimental.serialize_executable import deserialize_and_load
+
+            loaded = deserialize_and_load(zlib.decompress(path.read_bytes()), in_tree, exported.out_tree)
+            return _checked_first_call(loaded, compiled, path, lapack)
+        except Exception:  # a damaged or foreign file: lower and compile as usual
+            pass
+    events = []
+
+    def listener(event, **kwargs):
+        if event.startswith("/jax/compilation_cache/") and threading.get_ident() == thread:
+            events.append(event)
+
+    thread = threading.get_ident()
+    jax.monitoring.register_event_listener(listener)
+    try:
+        with contextlib.nullcontext() if lapack else _without_lapack_setup():
+            lowered = compiled.lower(*xs)
+        executable = lowered.compile()
+    finally:
+        jax.monitoring.unregister_event_listener(listener)
+    # stored only when XLA compiled it here: JAX's cache was asked and had no copy (an
+    # executable JAX already held in this process may have come from its cache)
+    asked = "/jax/compilation_cache/compile_requests_use_cache" in events
+    compiled_here = asked and "/jax/compilation_cache/cache_hits" not in events
+    if path is not None and compiled_here:
+        try:
+            from jax.experimental.serialize_executable import serialize
+
+            _write(path, zlib.compress(serialize(executable)[0], 1))
+        except Exception:  # pragma: no cover - a backend that cannot serialise: not stored
+            pass
+    return executable
+
+
+def _lowered_without_lapack_setup(compiled) -> Callable:
+    """``compiled`` (``jax.jit``), its first call (which lowers it) without JAX's LAPACK set-up."""
+    state = [False]
+
+    def call(*xs):
+        if state[0]:
+            return compiled(*xs)
+        with _without_lapack_setup():
+            out = compiled(*xs)
+        state[0] = True
+        return out
+
+    return call
+
+
+def _checked_first_call(loaded, compiled, path: pathlib.Path, lapack: bool) -> Callable:
+    """``loaded``, whose first call falls back to ``compiled`` (``jax.jit``) if it fails (an
+    executable without its kernels fails when run): the file is then removed."""
+    state = [False]
+
+    def call(*xs):
+        if state[0]:
+            return loaded(*xs)
+        try:
+            out = jax.block_until_ready(loaded(*xs))
+        except Exception:
+            with contextlib.suppress(OSError):
+                path.unlink()
+            with contextlib.nullcontext() if lapack else _without_lapack_setup():
+                return compiled(*xs)
+        state[0] = True
+        return out
+
+    return call
+
+
+def _executable_path(key: str) -> pathlib.Path | None:
+    """Where the executable of the export ``key`` for this machine's backend is kept."""
+    try:
+        devices = jax.devices()
+        backend = devices[0].client
+        text = [backend.platform, backend.platform_version, os.environ.get("XLA_FLAGS", "")]
+        text += [d.device_kind for d in devices]
+        try:
+            from jax._src.lib import xla_client
+
+            text.append(str(xla_client.get_topology_for_devices(devices).fingerprint()))
+        except Exception:  # no topology for this backend: its devices' kinds
+            pass
+    except Exception:  # pragma: no cover
+        return None
+    machine = hashlib.sha256("\n".join(text).encode()).hexdigest()[:16]
+    return export_dir() / f"{key}.{machine}.executable"
 
 
 def _without_locations(exported):

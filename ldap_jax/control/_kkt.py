@@ -159,8 +159,10 @@ def derivatives(
     defects = jnp.concatenate([(f1 - chi[0])[None], F - chi[1:]])
     (gc, gv), costs = jax.vmap(_grad_and_value(fns.stage_cost))(chi[:-1], v)
     chiK = chi[-1]
-    # the terminal cost and constraints, with their Jacobians and Hessians, in one pass
-    HK, (JK, vK) = _second_order(jax.jacfwd, jax.jacrev, _terminal_values(fns), chiK)
+    # the terminal cost and constraints, with their Jacobians and Hessians, in one pass: forward
+    # over forward, like F_0 (one node, so its n^2 directions cost little at run time; a smaller
+    # program for XLA to compile than forward over reverse)
+    HK, (JK, vK) = _second_order(jax.jacfwd, jax.jacfwd, _terminal_values(fns), chiK)
     cK, CK = vK[1:], JK[1:]
     exact = theta(defects, cK) <= exact_tol
 

@@ -219,10 +219,10 @@ def riccati_apply(f: Factor, rhs: QPVector, refine: int = 0, atol: Array | float
     interior-point method are ill-conditioned (the barrier's ``zeta / slack`` grows like
     ``1 / mu`` on active bounds), and their residual perturbs the next iterate's KKT error
     directly. With ``refine > 0`` the result is not reverse-differentiable (a ``while_loop``)."""
-    sol = _apply(f, rhs)
     if not refine:
-        return sol
-    res = kkt_residual(f, rhs, sol)
+        return _apply(f, rhs)
+    # the first solve is the loop's first pass, from the zero solution (whose residual is
+    # ``rhs``), always taken: one copy of the solve in the program instead of two
 
     def cond(carry):
         _, _, size, k = carry
@@ -233,7 +233,8 @@ def riccati_apply(f: Factor, rhs: QPVector, refine: int = 0, atol: Array | float
         s_new = jax.tree_util.tree_map(jnp.add, s, _apply(f, r))
         r_new = kkt_residual(f, rhs, s_new)
         size_new = max_abs(r_new)
-        better = size_new < size  # a correction that does not reduce the residual is not taken
+        # a correction that does not reduce the residual is not taken
+        better = (size_new < size) | (k < 0)
 
         def keep(new, old):
             return jax.tree_util.tree_map(lambda x, y: jnp.where(better, x, y), new, old)
@@ -245,7 +246,9 @@ def riccati_apply(f: Factor, rhs: QPVector, refine: int = 0, atol: Array | float
             jnp.where(better, k + 1, refine),
         )
 
-    return jax.lax.while_loop(cond, body, (sol, res, max_abs(res), jnp.zeros((), jnp.int32)))[0]
+    zero = jax.tree_util.tree_map(lambda x: jnp.zeros(x.shape, x.dtype), jax.eval_shape(_apply, f, rhs))
+    start = (zero, rhs, jnp.asarray(jnp.inf, rhs.qK.dtype), -jnp.ones((), jnp.int32))
+    return jax.lax.while_loop(cond, body, start)[0]
 
 
 def max_abs(tree) -> Array:
