@@ -270,6 +270,19 @@ def test_a_new_process_loads_the_executable_the_first_one_compiled(tmp_path):
         np.testing.assert_allclose(np.asarray(r["params"]), np.asarray(want.params), rtol=1e-12, atol=1e-12)
 
 
+def test_executables_are_kept_per_host_cpu(monkeypatch):
+    """An executable is machine code for the CPU that compiled it: a machine with other
+    instruction-set extensions (another node of a cluster sharing the cache folder) looks for a
+    file of its own and never loads a foreign one."""
+    here = _export._executable_path("some_key")
+    assert here is not None and here.name.startswith("some_key.")
+    assert _export._executable_path("some_key") == here  # the same machine: the same file
+    monkeypatch.setattr(_export, "_host_cpu", lambda: "x86_64 fpu sse2 avx512f")
+    there = _export._executable_path("some_key")
+    monkeypatch.setattr(_export, "_host_cpu", lambda: "x86_64 fpu sse2")
+    assert len({here, there, _export._executable_path("some_key")}) == 3
+
+
 #: a program with a LAPACK call (a custom call) through an export, in a new process
 LAPACK_PROCESS = """
 import json, sys

@@ -604,8 +604,27 @@ def _executable_path(key: str) -> pathlib.Path | None:
             pass
     except Exception:  # pragma: no cover
         return None
+    text.append(_host_cpu())
     machine = hashlib.sha256("\n".join(text).encode()).hexdigest()[:16]
     return export_dir() / f"{key}.{machine}.executable"
+
+
+def _host_cpu() -> str:
+    """The host's processor and the instruction-set extensions it offers (Linux: ``/proc/cpuinfo``'s
+    first ``flags`` line; elsewhere what :mod:`platform` says): XLA compiles for the host's CPU,
+    and a cache folder shared by machines with different CPUs (a cluster's file system) must not
+    hand one of them machine code it cannot run."""
+    import platform
+
+    text = f"{platform.machine()} {platform.processor()}"
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith(("flags", "Features")):
+                    return f"{text} {line.split(':', 1)[-1].strip()}"
+    except OSError:
+        pass
+    return text
 
 
 def _without_locations(exported):
