@@ -63,7 +63,11 @@ def test_reloaded_export_gives_the_traced_solution(exports):
     reference = _traced(task)
     first = lc.solve(task)
     files = sorted(p.suffix for p in exports.iterdir())
-    assert files == [".jaxexport", ".jaxexport", ".json", ".json"], files  # the run and the finish
+    # the run's and the finish's exports, and the executable of each that this process compiled
+    # (none of those JAX's cache already held: which, depends on the tests run before)
+    exported = [f for f in files if f != ".executable"]
+    assert exported == [".jaxexport", ".jaxexport", ".json", ".json"], files
+    assert files.count(".executable") <= 2, files
     _export._loaded.clear()
     with compiled_programs("trace") as traced:
         again = lc.solve(task)
