@@ -229,7 +229,15 @@ def test_launcher_stops_the_others_when_one_fails(tmp_path):
         "import sys, time, pathlib\n"
         "argv = sys.argv[1:]\n"
         "i = argv[argv.index('--process-id') + 1]\n"
-        f"pathlib.Path(r'{tmp_path}', 'p' + i).write_text(' '.join(argv))\n"
+        f"root = pathlib.Path(r'{tmp_path}')\n"
+        "(root / ('.p' + i)).write_text(' '.join(argv))\n"
+        "(root / ('.p' + i)).rename(root / ('p' + i))\n"  # whole when it appears
+        # process 1 fails once the others have started (have written their options): failing
+        # earlier, it had the launcher stop process 2 before its interpreter got that far
+        "end = time.monotonic() + 20\n"
+        "while sys.argv[1] == 'fail' and i == '1' and time.monotonic() < end and not all(\n"
+        "    (root / f'p{j}').exists() for j in '02'):\n"
+        "    time.sleep(0.05)\n"
         "if sys.argv[1] == 'fail' and i == '1': sys.exit(5)\n"
         "if sys.argv[1] == 'fail': time.sleep(60)\n"
     )
