@@ -92,9 +92,7 @@ class AbstractControls(eqx.Module):
         """
         return lambda t: jax.vmap(self.__call__)(t + h * fractions)
 
-    def node_sampler(
-        self, *, reverse_only: bool = False
-    ) -> Callable[[Array], Float[Array, " n_channels"]] | None:
+    def node_sampler(self) -> Callable[[Array], Float[Array, " n_channels"]] | None:
         """A function ``t -> controls(t)`` for a rollout that carries the controls from step to
         step, or ``None`` (the default: the rollout calls :meth:`sampler` at every step).
 
@@ -173,18 +171,15 @@ class Sinusoids(AbstractControls):
         hand-written VJP (:func:`_sinusoid_term`) that sends the derivative through
         ``(sin, cos)(w f h)`` to ``w`` and ``h`` at once, so that a rollout's backward pass keeps
         three cotangents per term (``A``, ``W``, ``P``), not five (and the two of shape ``S``)."""
-        n_ch, n_terms = self.amplitude.shape[-2:]
+        n_ch = self.amplitude.shape[-2]
         ds, dc = sincos(self.frequency[None] * (h * fractions)[:, None, None])  # (S, channels, terms)
         # every coefficient a scalar of its own, taken apart here, before the rollout's loop: under
         # vmap each is one contiguous vector (sliced inside the loop from the (B, channels, terms)
         # arrays, they were strided loads: 4 of the 6 sincos of a snakeboard step cost 10x the
         # kernel's own), and sin and cos finished in one kernel each (``whole``)
         terms = [
-            [
-                (self.amplitude[i, j], self.frequency[i, j], self.phase[i, j], ds[:, i, j], dc[:, i, j])
-                for j in range(n_terms)
-            ]
-            for i in range(n_ch)
+            [(*term, ds[:, i, j], dc[:, i, j]) for j, term in enumerate(channel)]
+            for i, channel in enumerate(self._scalar_terms())
         ]
 
         custom = reverse_only and not plain_active()
@@ -207,29 +202,34 @@ class Sinusoids(AbstractControls):
 
         return sample
 
-    def node_sampler(self, *, reverse_only: bool = False):
+    def _scalar_terms(self) -> list[list[tuple[Array, Array, Array]]]:
+        """``(A[c, j], W[c, j], P[c, j])`` per channel ``c`` and term ``j``, each a scalar of its own
+        (one contiguous vector under ``vmap``), taken apart before a rollout's loop."""
+        n_ch, n_terms = self.amplitude.shape[-2:]
+        return [
+            [(self.amplitude[i, j], self.frequency[i, j], self.phase[i, j]) for j in range(n_terms)]
+            for i in range(n_ch)
+        ]
+
+    def node_sampler(self):
         """``t -> sum_j A[c, j] sin(W[c, j] t + P[c, j])``, term by term on scalars (contiguous
         vectors under ``vmap``, as :meth:`sampler`), one sine per term (``sincos``'s, finished in
         one kernel). A rollout whose integrator reads the controls at the ends of its steps only
         (order-2 RDP, DLA, GNI) calls it once per step, at the step's end, and carries the
         values into the next step: the angle addition of :meth:`sampler` needs a sine and a
         cosine per term at every step's start (8 of the 39 XLA kernels of a snakeboard step).
-        JAX differentiates it (``reverse_only`` is accepted for the rollout's call and changes
-        nothing: JAX's derivative keeps the three cotangents of a term, and a hand-written VJP
-        sharing one argument reduction between the sine and the cosine ran no faster)."""
-        n_ch, n_terms = self.amplitude.shape[-2:]
-        terms = [
-            [(self.amplitude[i, j], self.frequency[i, j], self.phase[i, j]) for j in range(n_terms)]
-            for i in range(n_ch)
-        ]
+        JAX differentiates it (its derivative keeps the three cotangents of a term; a
+        hand-written VJP sharing one argument reduction between the sine and the cosine ran no
+        faster)."""
+        terms = self._scalar_terms()
 
         def sample(t):
-            if not n_ch:
+            if not terms:
                 return jnp.zeros((0,), t.dtype)
             columns = []
-            for i in range(n_ch):
+            for channel in terms:
                 col = 0.0
-                for a, w, p in terms[i]:
+                for a, w, p in channel:
                     col = col + a * sincos(w * t + p, whole=True)[0]
                 columns.append(col)
             return jnp.stack(columns)

@@ -259,7 +259,7 @@ def rollout(
             # The symmetric steps only: at alpha != 1/2 (order 1) the round-off of the carried
             # values took a float32 comparison of the car's kernel with its Newton step just past
             # its bound (tests/test_closed_form.py), and order 1 is not a step one runs for speed
-            sample_node = controls.node_sampler(**reverse_only)
+            sample_node = controls.node_sampler()
 
     def node_time(k):
         return t0 + h * k.astype(dtype)
