@@ -454,24 +454,16 @@ def rollout(
 
 def _mobility(system: AbstractSystem, q0: Array) -> Array | None:
     """``A`` with ``1/2 P^T A P`` the kinetic energy an impulse ``P`` of the shape forces gives the
-    system at rest at ``q0`` (the constrained inverse mass matrix on the shape coordinates), or
-    ``None`` for a description without a full view (the test then scales by the absolute work).
-
-    ``A = d u / d P`` of the shape velocity whose momenta are ``(pu, mu) = (P, 0)``
-    (:meth:`~ldap_jax.systems.AbstractSystem.velocity_from_momenta`: at rest, the impulse's
-    response is the force's, ``full_acceleration``, to round-off, at a fraction of its cost: no
-    Hessian of the Lagrangian, no KKT solve per maneuver)."""
-    n_s = system.n_shape
-    zero = jnp.zeros(n_s, q0.dtype)
+    system at rest at ``q0`` (:meth:`~ldap_jax.systems.AbstractSystem.shape_mobility`: the
+    constrained inverse mass matrix on the shape coordinates), or ``None`` for a description
+    without a full view (the test then scales by the absolute work). The probe for the full view
+    is the shape of ``C(r)`` alone (tracing the full equations' accelerations to find out took
+    half of a simulate's tracing)."""
     try:  # a System description without a full view (no constraints given) has no such scale
-        jax.eval_shape(lambda q: system.full_acceleration(q, jnp.zeros_like(q), zero, zero), q0)
+        jax.eval_shape(system.body_constraints, q0[3:])
     except ValueError:
         return None
-
-    def response(p):
-        return system.velocity_from_momenta(q0[3:], p, jnp.zeros(3, q0.dtype), zero)[0]
-
-    return jax.jacfwd(response)(zero)
+    return system.shape_mobility(q0[3:])
 
 
 def _impulse(prev: Array, f: Array, h: Array) -> Array:

@@ -212,3 +212,31 @@ def test_diagnostics_on_values_are_one_program_each(name):
     inline = jax.jit(lambda q, qdot: [getattr(system, m)(q, qdot) for m in methods])(q, qdot)
     for m, a, b in zip(methods, eager, inline):
         np.testing.assert_allclose(a, b, rtol=1e-13, atol=1e-15, err_msg=m)
+
+
+@pytest.mark.parametrize("name", [*SYSTEMS, "roller racer"])
+def test_shape_mobility_is_the_impulse_response_at_rest(name):
+    """``A = shape_mobility(r)`` (the leading block of the Newton Jacobian's inverse) equals the
+    derivative of ``velocity_from_momenta`` with respect to the shape momenta at rest, is
+    symmetric, and ``1/2 P^T A P`` is the kinetic energy of the velocity an impulse ``P`` gives
+    (the energy less that at rest: the racer's hinge has a potential)."""
+    system = SYSTEMS[name] if name in SYSTEMS else lj.systems.roller_racer()
+    r = jnp.asarray(rng.uniform(-1.0, 1.0, size=system.n_shape))
+    p = jnp.asarray(rng.normal(size=system.n_shape))
+
+    @eqx.filter_jit
+    def both(system, r, p):
+        zero = jnp.zeros_like(r)
+        a = system.shape_mobility(r)
+        by_ad = jax.jacfwd(lambda pp: system.velocity_from_momenta(r, pp, jnp.zeros(3, r.dtype), zero)[0])(zero)
+        u, xi = system.velocity_from_momenta(r, p, jnp.zeros(3, r.dtype), zero)
+        rest = system.reduced_energy(r, zero, jnp.zeros(3, r.dtype))
+        return a, by_ad, system.reduced_energy(r, u, xi) - rest
+
+    a, by_ad, energy = (np.asarray(x) for x in both(system, r, p))
+    scale = np.max(np.abs(by_ad))
+    assert scale > 0
+    np.testing.assert_allclose(a, by_ad, rtol=0, atol=1e-13 * scale)
+    np.testing.assert_allclose(a, a.T, rtol=0, atol=1e-13 * scale)
+    p = np.asarray(p)
+    np.testing.assert_allclose(0.5 * p @ a @ p, energy, rtol=1e-12)

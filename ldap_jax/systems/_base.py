@@ -309,6 +309,34 @@ class AbstractSystem(eqx.Module):
         Returns:
             ``(u (n,), xi (3,))``.
         """
+        residual, unpack, z0 = self._legendre_residual(r, pu, mu, u_kin)
+        z = z0 - solve(jax.jacfwd(residual)(z0), residual(z0))
+        return unpack(z)
+
+    def shape_mobility(self, r: Array) -> Float[Array, "n n"]:
+        """``A = d u / d pu`` of :meth:`velocity_from_momenta` at rest (``mu = 0``, no prescribed
+        velocity): the shape velocity an impulse ``P`` of the shape forces gives the system at
+        rest at shape ``r`` is ``A P``, with kinetic energy ``1/2 P^T A P`` (the constrained
+        inverse mass matrix on the shape coordinates; zero rows and columns for kinematic ones).
+
+        ``velocity_from_momenta`` is affine in ``pu``: its residual ``R(z) - S^T pu`` has the
+        Jacobian ``J`` of the Newton step, and ``dz / d pu = J^-1 [S; 0]`` (``S`` selecting the
+        force-driven entries), so ``A`` is the leading block of ``J^-1`` scattered onto them.
+        """
+        n = self.n_shape
+        dyn = np.asarray(self.dynamic_index, dtype=int)
+        zero = jnp.zeros(n, r.dtype)
+        residual, _, z0 = self._legendre_residual(r, zero, jnp.zeros(3, r.dtype), zero)
+        nd = dyn.size
+        if nd == 0:
+            return jnp.zeros((n, n), r.dtype)
+        rhs = jnp.eye(z0.size, nd, dtype=r.dtype)
+        block = solve(jax.jacfwd(residual)(z0), rhs)[:nd]
+        return jnp.zeros((n, n), r.dtype).at[np.ix_(dyn, dyn)].set(block)
+
+    def _legendre_residual(self, r: Array, pu: Array, mu: Array, u_kin: Array):
+        """The residual of :meth:`velocity_from_momenta` in the unknowns ``z = (u[dyn], w)``, the
+        map ``z -> (u, xi)`` and the starting point ``z = 0``."""
         dyn = np.asarray(self.dynamic_index, dtype=int)
         nd = dyn.size
         a_r, e_r = self.connection(r), self.symmetry_basis(r)
@@ -324,9 +352,7 @@ class AbstractSystem(eqx.Module):
             hor = du - a_r.T @ jump - pu
             return jnp.concatenate([hor[dyn], e_r.T @ jump])
 
-        z0 = jnp.zeros(nd + e_r.shape[1], r.dtype)
-        z = z0 - solve(jax.jacfwd(residual)(z0), residual(z0))
-        return unpack(z)
+        return residual, unpack, jnp.zeros(nd + e_r.shape[1], r.dtype)
 
     def observation(
         self,
