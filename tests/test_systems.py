@@ -226,11 +226,11 @@ def test_shape_mobility_is_the_impulse_response_at_rest(name):
 
     @eqx.filter_jit
     def both(system, r, p):
-        zero = jnp.zeros_like(r)
+        zero, zero3 = jnp.zeros_like(r), jnp.zeros(3, r.dtype)
         a = system.shape_mobility(r)
-        by_ad = jax.jacfwd(lambda pp: system.velocity_from_momenta(r, pp, jnp.zeros(3, r.dtype), zero)[0])(zero)
-        u, xi = system.velocity_from_momenta(r, p, jnp.zeros(3, r.dtype), zero)
-        rest = system.reduced_energy(r, zero, jnp.zeros(3, r.dtype))
+        by_ad = jax.jacfwd(lambda pp: system.velocity_from_momenta(r, pp, zero3, zero)[0])(zero)
+        u, xi = system.velocity_from_momenta(r, p, zero3, zero)
+        rest = system.reduced_energy(r, zero, zero3)
         return a, by_ad, system.reduced_energy(r, u, xi) - rest
 
     a, by_ad, energy = (np.asarray(x) for x in both(system, r, p))
