@@ -284,7 +284,7 @@ def rollout(
     else:
         c_node0 = tuple(sample_node(node_time(k0)))
         c_stage0 = jnp.stack([vector(c_node0), sample_node(node_time(k0 + 1))])
-    state0 = integrator.init(system, h, q0, qdot0, c_stage0)
+    state0 = _tracing.init(integrator, system, h, q0, qdot0, c_stage0)
     obs0 = _tracing.observe(integrator, system, state0, c_first)
     obs0 = obs0._replace(qdot=qdot0)  # node 0 reports the given velocity
     energy_scale0 = jnp.abs(obs0.energy)
@@ -463,7 +463,7 @@ def _mobility(system: AbstractSystem, q0: Array) -> Array | None:
         jax.eval_shape(system.body_constraints, q0[3:])
     except ValueError:
         return None
-    return system.shape_mobility(q0[3:])
+    return _tracing.shape_mobility(system, q0[3:])
 
 
 def _impulse(prev: Array, f: Array, h: Array) -> Array:

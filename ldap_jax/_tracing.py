@@ -28,7 +28,7 @@ import numpy as np
 
 from ._numerics import plain_active
 
-__all__ = ["traced_once", "step", "observe"]
+__all__ = ["traced_once", "init", "step", "observe", "shape_mobility"]
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -101,3 +101,16 @@ def step(integrator: Any, system: Any, h: Any, state: Any, c: Any) -> Any:
 def observe(integrator: Any, system: Any, state: Any, c: Any) -> Any:
     """``integrator.observe(system, state, c)``, traced once per signature."""
     return integrator.observe(system, state, c)
+
+
+@traced_once
+def init(integrator: Any, system: Any, h: Any, q0: Any, qdot0: Any, c: Any) -> Any:
+    """``integrator.init(system, h, q0, qdot0, c)``, traced once per signature."""
+    return integrator.init(system, h, q0, qdot0, c)
+
+
+@traced_once
+def shape_mobility(system: Any, r: Any) -> Any:
+    """``system.shape_mobility(r)`` (the divergence test's scale), traced once per signature: its
+    second derivatives of the Lagrangian took a third of a rollout's tracing."""
+    return system.shape_mobility(r)

@@ -363,8 +363,11 @@ def test_every_save_option_has_the_step_once():
                 opts = dict(integrator=integrator, save=save, diagnostics=diagnostics, **kw)
                 jaxpr = jax.make_jaxpr(lambda q0: lj.simulate(sb, q0, qdot0, ctl, **opts).q)(q0)
                 counts[save, diagnostics] = sorted(_inner_call_sites(jaxpr.jaxpr).values())
-        assert counts["all", True] == [1, 2], counts  # the step; the observation (node 0, the loop)
-        assert all(c == counts["all", True] for c in counts.values()), counts
+        # the initial state, the divergence test's mobility (with diagnostics) and the step once
+        # each; the observation twice (node 0, the loop)
+        assert counts["all", True] == [1, 1, 1, 2], counts
+        assert counts["all", False] == [1, 1, 2], counts
+        assert all(c == counts["all", d] for (_, d), c in counts.items()), counts
 
 
 SINGULAR = lj.Sinusoids(
