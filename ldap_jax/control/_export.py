@@ -500,7 +500,7 @@ def _load_or_export(name, key, fun, leaves, static, treedef, out_template) -> Ca
 
         try:
             avals = [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in leaves]
-            exported = _without_locations(jex.export(jax.jit(flat))(*avals))
+            exported, lowered = _export_lowered(jax.jit(flat), avals)
             if traced_out[-1] != out_def:  # the template does not describe the output
                 return None
             # the module's bytecode holds its operations' and custom calls' names as strings
@@ -510,7 +510,7 @@ def _load_or_export(name, key, fun, leaves, static, treedef, out_template) -> Ca
         except Exception as err:  # e.g. a host callback: not exportable, trace as usual
             _warn_not_exported(err)
             return None
-        runner = _runner(name, key, exported, leaves, out_def, lapack, custom)
+        runner = _runner(name, key, exported, leaves, out_def, lapack, custom, lowered)
         try:  # written while XLA compiles the program (another thread)
             _write(program_path, bytes(exported.serialize()))
             meta = {"out": _describe(out_def, strict=False), "lapack": lapack, "custom_calls": custom}
@@ -561,15 +561,16 @@ class _Background:
         return self._value
 
 
-def _runner(name, key, exported, leaves, out_def, lapack: bool, custom: bool) -> Callable:
+def _runner(name, key, exported, leaves, out_def, lapack: bool, custom: bool, lowered=None) -> Callable:
     """The call of an exported program on its array leaves. Its compilation (or the load of its
-    stored executable) starts at once in a thread of its own; the first call waits for it."""
+    stored executable) starts at once in a thread of its own; the first call waits for it.
+    ``lowered``: the module the export was made from, compiled as it is (see :func:`_executable`)."""
     compiled = _compiled(exported, name)
     executable: list = [None]  # the compiled program, once the first call has it
     # NumPy arrays: never weakly typed, so a value made under grad (a Python number that
     # became a weak-typed array) meets the same compiled program, not a copy compiled again
     avals = [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in leaves]
-    pending = _Background(lambda: _executable(key, compiled, exported, avals, lapack, custom), name)
+    pending = _Background(lambda: _executable(key, compiled, exported, avals, lapack, custom, lowered), name)
 
     def runner(xs):
         xs = [np.asarray(x) for x in xs]
@@ -588,7 +589,9 @@ def _runner(name, key, exported, leaves, out_def, lapack: bool, custom: bool) ->
     return runner
 
 
-def _executable(key: str, compiled, exported, xs: list, lapack: bool, custom: bool) -> tuple[Callable, Any]:
+def _executable(
+    key: str, compiled, exported, xs: list, lapack: bool, custom: bool, lowered=None
+) -> tuple[Callable, Any]:
     """The compiled program of an export for arguments of the shapes of ``xs``, and a function that
     stores its executable (or ``None``): ``(program, store)``.
 
@@ -624,9 +627,14 @@ def _executable(key: str, compiled, exported, xs: list, lapack: bool, custom: bo
     thread = threading.get_ident()
     jax.monitoring.register_event_listener(listener)
     try:
-        with contextlib.nullcontext() if lapack else _without_lapack_setup():
-            lowered = compiled.lower(*xs)
-        executable = lowered.compile()
+        if lowered is not None:  # the export's own lowering: neither deserialised nor lowered again
+            from .._compilation_cache import compiler_options
+
+            executable = lowered.compile(compiler_options())
+        else:
+            with contextlib.nullcontext() if lapack else _without_lapack_setup():
+                lowered = compiled.lower(*xs)
+            executable = lowered.compile()
     finally:
         jax.monitoring.unregister_event_listener(listener)
     # stored only when XLA compiled it here: JAX's cache was asked and had no copy (an
@@ -719,6 +727,39 @@ def _host_cpu() -> str:
     except OSError:
         pass
     return text
+
+
+def _export_lowered(fun_jit, avals: list) -> tuple[Any, Any]:
+    """``(exported, lowered)``: ``jax.export`` of ``fun_jit`` at ``avals`` without source locations
+    (:func:`_without_locations`), and the lowered module it was made from (``None`` where this
+    JAX's export cannot be taken apart: then as ``jax.export`` does, and stripped afterwards).
+
+    The module is stripped where it was lowered, before it is serialised, and XLA compiles that
+    module as it is: a first solve neither deserialises the module to strip it nor lowers the
+    export again to compile it (with MLIR's set-up, 0.3-0.5 s of the cold first solve)."""
+    try:
+        from jax._src import config
+        from jax._src.export import _export as internal
+        from jax._src.interpreters import mlir
+        from jax._src.lib.mlir import passmanager
+
+        traced = fun_jit.trace(*avals)
+        lowered = traced.lower(
+            lowering_platforms=(internal.default_export_platform(),),
+            _private_parameters=mlir.LoweringParameters(
+                for_export=True,
+                hoist_constants_as_args=False,
+                export_ignore_forward_compatibility=config.export_ignore_forward_compatibility.value,
+            ),
+        )
+        module = lowered._lowering.stablehlo()
+        with module.context:
+            passmanager.PassManager.parse("builtin.module(strip-debuginfo)").run(module.operation)
+        return internal._export_lowered(lowered, traced.jaxpr, traced.fun_name), lowered
+    except (ImportError, AttributeError, TypeError):  # pragma: no cover - a future JAX
+        from jax import export as jex
+
+        return _without_locations(jex.export(fun_jit)(*avals)), None
 
 
 def _without_locations(exported):
