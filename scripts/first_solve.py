@@ -13,7 +13,9 @@ first process is cold and the later ones warm; ``--cache DIR`` to keep it) and t
 * ``import``: ``import ldap_jax`` and ``ldap_jax.control``;
 * ``first``: the first ``lc.solve(lc.parallel_park())`` (everything: the task's construction,
   tracing, lowering, XLA compilation or cache reads, the run), and of it the task's construction;
-* ``second``: a second solve of the same task in the same process (the repeat time);
+* ``second``: a second solve of the same task in the same process, and ``repeat`` the least of
+  ten more (the repeat time); ``first_cpu``: the first solve's CPU time (every thread's: XLA
+  compiles on several);
 * per program: JAX's own monitoring events (``jax.monitoring``): Python tracing to a jaxpr,
   lowering to StableHLO, XLA compilation, persistent-cache reads, summed per program name.
 
@@ -70,23 +72,30 @@ def child(cache: str) -> dict:
 
     jax.monitoring.register_event_duration_secs_listener(listener)
 
-    t1 = time.perf_counter()
+    t1, c1 = time.perf_counter(), time.process_time()
     task = lc.parallel_park()
     t_task = time.perf_counter() - t1
     sol = lc.solve(task)
     jax.block_until_ready(sol)
-    t_first = time.perf_counter() - t1
+    t_first, c_first = time.perf_counter() - t1, time.process_time() - c1
     first_programs = {k: dict(v) for k, v in per_program.items()}
 
     t2 = time.perf_counter()
     sol2 = lc.solve(lc.parallel_park())
     jax.block_until_ready(sol2)
     t_second = time.perf_counter() - t2
+    repeats = []
+    for _ in range(10):
+        t3 = time.perf_counter()
+        jax.block_until_ready(lc.solve(lc.parallel_park()))
+        repeats.append(time.perf_counter() - t3)
     return {
         "import": t_import,
         "first": t_first,
         "task": t_task,
         "second": t_second,
+        "repeat": min(repeats),
+        "first_cpu": c_first,
         "converged": bool(sol.converged),
         "iterations": int(sol.iterations),
         "cost": float(sol.cost),
@@ -152,8 +161,9 @@ def run_child(cache: str, export: bool) -> dict:
 
 def report(label: str, r: dict, top: int) -> None:
     print(
-        f"{label}: process {r['process']:.2f} s, import {r['import']:.2f} s, first solve {r['first']:.2f} s, "
-        f"second {r['second']:.3f} s (converged {r['converged']}, {r['iterations']} iterations, "
+        f"{label}: process {r['process']:.2f} s, import {r['import']:.2f} s, first solve {r['first']:.2f} s "
+        f"(CPU {r['first_cpu']:.2f} s), second {r['second']:.3f} s, repeats {r['repeat']:.3f} s "
+        f"(converged {r['converged']}, {r['iterations']} iterations, "
         f"cost {r['cost']:.10g})"
     )
     totals = collections.Counter()
