@@ -186,7 +186,7 @@ def _solve_one(task: Task, params0, options: IPMOptions) -> Solution:
     # exported (_export: no tracing). The run's inputs are cut from differentiation, so it can be
     # the exported program under grad too; the finish (the IFT step) only at the top level.
     args = (_stopped(task), _stopped(params0), options)
-    shapes = _export.prepare("run", _run_one, args, _run_template)
+    shapes = _export.prepare("run", _run_one, args, _run_template, quick=True)
     if shapes is not None:  # the finish exported (or loaded) while XLA compiles the run
         _export.prepare("finish", _finish.__wrapped__, (task, *shapes), lambda: _template(params0))
     run = _export.call("run", _run_one, args, _run_template)
