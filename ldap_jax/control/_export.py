@@ -567,6 +567,10 @@ class _Background:
             raise self._error
         return self._value
 
+    def forget(self) -> None:
+        """Drop the value (its caller holds it)."""
+        self._value = None
+
 
 def _runner(
     name, key, exported, leaves, out_def, lapack: bool, custom: bool, lowered=None, quick: bool = False
@@ -605,6 +609,7 @@ def _runner(
         # became a weak-typed array) meets the same compiled program, not a copy compiled again
         xs = [np.asarray(x) for x in xs]
         if optimised[0] is not None:
+            executable[0] = None  # the quick program: no longer held (nor its memory mappings)
             return jax.tree_util.tree_unflatten(out_def, optimised[0](*xs))
         if executable[0] is None:
             with _lock:  # the first call (the one that waits for the program) in one thread
@@ -612,6 +617,7 @@ def _runner(
                     program = pending.result()
                     outs = program(*xs)
                     executable[0] = program
+                    pending.forget()
                     return jax.tree_util.tree_unflatten(out_def, outs)
         return jax.tree_util.tree_unflatten(out_def, executable[0](*xs))
 
