@@ -88,8 +88,9 @@ def test_a_new_export_runs_its_quick_program_first_then_the_optimised_one(export
     """The process that exports the run compiles it twice, in a thread of its own: first with
     ``QUICK_OPTIONS`` (the first call runs that program), then with the library's options (the
     calls after it is ready run that one, and its executable is the one stored). Both give the
-    traced program's solution to 1e-12. Without the quick options (an XLA that rejects them) the
-    run compiles once, with the library's options, and solves the same."""
+    traced program's solution to 1e-12. Only a process's first such program: the next new export
+    compiles once. Without the quick options (an XLA that rejects them) the run compiles once,
+    with the library's options, and solves the same."""
     calls = []
     original = _export._compile_lowered
 
@@ -98,6 +99,7 @@ def test_a_new_export_runs_its_quick_program_first_then_the_optimised_one(export
         return original(lowered, options)
 
     monkeypatch.setattr(_export, "_compile_lowered", recording)
+    monkeypatch.setattr(_export, "_quick_spent", [False])  # as in a new process
     task = lc.parallel_park(integrator=lj.RDP(), n_steps=40)
     reference = _traced(task)
     first = lc.solve(task)
@@ -108,8 +110,16 @@ def test_a_new_export_runs_its_quick_program_first_then_the_optimised_one(export
     assert len(calls) == 3, calls  # and the run's and the finish's with the library's options
     for sol in (first, second):
         _assert_same(sol, reference)
+    _export._loaded.clear()  # a second new structure in the process compiles once
+    for path in exports.iterdir():
+        path.unlink()
+    calls.clear()
+    lc.solve(task)
+    _join_background_compilations()
+    assert len(calls) == 2 and not any(c.items() >= _export.QUICK_OPTIONS.items() for c in calls), calls
 
-    monkeypatch.setattr(_export, "_loaded", {})
+    _export._loaded.clear()
+    monkeypatch.setattr(_export, "_quick_spent", [False])
     monkeypatch.setattr(_export, "QUICK_OPTIONS", {"xla_no_such_option": 1})
     for path in exports.iterdir():
         path.unlink()

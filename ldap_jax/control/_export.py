@@ -308,10 +308,11 @@ def prepare(
     has not run yet): ``lc.solve`` prepares its finish while XLA compiles its run, so a first
     solve takes the longer of the two rather than their sum. Only outside every JAX trace.
 
-    With ``quick``, a process that exports the program compiles it twice: first with
-    :data:`QUICK_OPTIONS` (about half XLA's time; the program runs about 3x slower), which the
-    first calls use, then, in the same thread, with the library's options, which later calls use
-    once it is ready and whose executable is the one stored for later processes."""
+    With ``quick``, the first process to export the program compiles it twice if it is the
+    process's first such program: first with :data:`QUICK_OPTIONS` (about half XLA's time; the
+    program runs about 3x slower), which the first calls use, then, in the same thread, with the
+    library's options, which later calls use once it is ready and whose executable is the one
+    stored for later processes. ``LDAP_JAX_QUICK_FIRST=0`` turns this off."""
     if not enabled():
         return None
     from .._compilation_cache import in_trace
@@ -586,8 +587,15 @@ def _runner(
     optimised: list = [None]  # with quick: the program with the library's options, once ready
     avals = [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in leaves]
 
+    # the quick program only for the first program of a process that asks for one: later in a
+    # process the second compilation competes with the process's own work (other programs'
+    # compilations) for the cores, and costs more than it saves
+    quick = quick and lowered is not None and not custom and not _quick_spent[0] and _quick_allowed()
+    if quick:
+        _quick_spent[0] = True
+
     def build():
-        if not quick or lowered is None or custom:
+        if not quick:
             return _executable(key, compiled, exported, avals, lapack, custom, lowered)
         try:
             first = _compile_lowered(lowered, {**(compiler_options() or {}), **QUICK_OPTIONS})
@@ -765,6 +773,13 @@ def _host_cpu() -> str:
     except OSError:
         pass
     return text
+
+
+_quick_spent = [False]  # a quick program was compiled in this process
+
+
+def _quick_allowed() -> bool:
+    return os.environ.get("LDAP_JAX_QUICK_FIRST", "1").strip() not in ("0", "false", "False")
 
 
 #: XLA options of a first, quick compilation (:func:`prepare`'s ``quick``): LLVM without its
