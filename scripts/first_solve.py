@@ -13,7 +13,11 @@ first process is cold and the later ones warm; ``--cache DIR`` to keep it) and t
 * ``import``: ``import ldap_jax`` and ``ldap_jax.control``;
 * ``first``: the first ``lc.solve(lc.parallel_park())`` (everything: the task's construction,
   tracing, lowering, XLA compilation or cache reads, the run), and of it the task's construction;
-* ``second``: a second solve of the same task in the same process (the repeat time);
+* ``second``: a second solve of the same task in the same process right after the first, and
+  ``repeat`` the least of ten more once the library's background compilations are done
+  (``background``: when, from the first solve's start; a cold process compiles the run program
+  quickly for its first calls and the optimised one behind them); ``first_cpu``: the first
+  solve's CPU time (every thread's: XLA compiles on several);
 * per program: JAX's own monitoring events (``jax.monitoring``): Python tracing to a jaxpr,
   lowering to StableHLO, XLA compilation, persistent-cache reads, summed per program name.
 
@@ -38,6 +42,7 @@ import os
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 
 EVENTS = {
@@ -70,23 +75,36 @@ def child(cache: str) -> dict:
 
     jax.monitoring.register_event_duration_secs_listener(listener)
 
-    t1 = time.perf_counter()
+    t1, c1 = time.perf_counter(), time.process_time()
     task = lc.parallel_park()
     t_task = time.perf_counter() - t1
     sol = lc.solve(task)
     jax.block_until_ready(sol)
-    t_first = time.perf_counter() - t1
+    t_first, c_first = time.perf_counter() - t1, time.process_time() - c1
     first_programs = {k: dict(v) for k, v in per_program.items()}
 
     t2 = time.perf_counter()
     sol2 = lc.solve(lc.parallel_park())
     jax.block_until_ready(sol2)
     t_second = time.perf_counter() - t2
+    # the library's compilations still running in the background (the run's optimised program)
+    for thread in threading.enumerate():
+        if thread.name.startswith("ldap_jax-"):
+            thread.join()
+    t_background = time.perf_counter() - t1
+    repeats = []
+    for _ in range(10):
+        t3 = time.perf_counter()
+        jax.block_until_ready(lc.solve(lc.parallel_park()))
+        repeats.append(time.perf_counter() - t3)
     return {
         "import": t_import,
         "first": t_first,
         "task": t_task,
         "second": t_second,
+        "repeat": min(repeats),
+        "background": t_background,
+        "first_cpu": c_first,
         "converged": bool(sol.converged),
         "iterations": int(sol.iterations),
         "cost": float(sol.cost),
@@ -152,8 +170,10 @@ def run_child(cache: str, export: bool) -> dict:
 
 def report(label: str, r: dict, top: int) -> None:
     print(
-        f"{label}: process {r['process']:.2f} s, import {r['import']:.2f} s, first solve {r['first']:.2f} s, "
-        f"second {r['second']:.3f} s (converged {r['converged']}, {r['iterations']} iterations, "
+        f"{label}: process {r['process']:.2f} s, import {r['import']:.2f} s, first solve {r['first']:.2f} s "
+        f"(CPU {r['first_cpu']:.2f} s), second {r['second']:.3f} s, background done at "
+        f"{r.get('background', 0):.2f} s, repeats {r['repeat']:.3f} s "
+        f"(converged {r['converged']}, {r['iterations']} iterations, "
         f"cost {r['cost']:.10g})"
     )
     totals = collections.Counter()

@@ -6,6 +6,7 @@ import json
 import os
 import subprocess
 import sys
+import threading
 
 import equinox as eqx
 import jax
@@ -75,6 +76,58 @@ def test_reloaded_export_gives_the_traced_solution(exports):
     assert bool(reference.converged)
     _assert_same(first, reference)
     _assert_same(again, reference)
+
+
+def _join_background_compilations():
+    for thread in threading.enumerate():
+        if thread.name.startswith("ldap_jax-"):
+            thread.join()
+
+
+def test_a_new_export_runs_its_quick_program_first_then_the_optimised_one(exports, monkeypatch):
+    """The process that exports the run compiles it twice, in a thread of its own: first with
+    ``QUICK_OPTIONS`` (the first call runs that program), then with the library's options (the
+    calls after it is ready run that one, and its executable is the one stored). Both give the
+    traced program's solution to 1e-12. Only a process's first such program: the next new export
+    compiles once. Without the quick options (an XLA that rejects them) the run compiles once,
+    with the library's options, and solves the same."""
+    calls = []
+    original = _export._compile_lowered
+
+    def recording(lowered, options):
+        calls.append(dict(options or {}))
+        return original(lowered, options)
+
+    monkeypatch.setattr(_export, "_compile_lowered", recording)
+    monkeypatch.setattr(_export, "_quick_spent", [False])  # as in a new process
+    task = lc.parallel_park(integrator=lj.RDP(), n_steps=40)
+    reference = _traced(task)
+    first = lc.solve(task)
+    _join_background_compilations()
+    second = lc.solve(task)
+    quick = [c for c in calls if c.items() >= _export.QUICK_OPTIONS.items()]
+    assert len(quick) == 1, calls  # the run's quick program (the finish compiles once)
+    assert len(calls) == 3, calls  # and the run's and the finish's with the library's options
+    for sol in (first, second):
+        _assert_same(sol, reference)
+    _export._loaded.clear()  # a second new structure in the process compiles once
+    for path in exports.iterdir():
+        path.unlink()
+    calls.clear()
+    lc.solve(task)
+    _join_background_compilations()
+    assert len(calls) == 2 and not any(c.items() >= _export.QUICK_OPTIONS.items() for c in calls), calls
+
+    _export._loaded.clear()
+    monkeypatch.setattr(_export, "_quick_spent", [False])
+    monkeypatch.setattr(_export, "QUICK_OPTIONS", {"xla_no_such_option": 1})
+    for path in exports.iterdir():
+        path.unlink()
+    calls.clear()
+    third = lc.solve(task)
+    _join_background_compilations()
+    assert len(calls) == 3 and sum("xla_no_such_option" in c for c in calls) == 1, calls
+    _assert_same(third, reference)
 
 
 def test_a_batch_of_starts_is_served_from_its_export(exports):
@@ -325,6 +378,7 @@ RACER_KEY = """
 import jax
 jax.config.update("jax_enable_x64", True)
 import sys
+import threading
 sys.path.insert(0, sys.argv[1])
 from test_export import _key
 from ldap_jax import control as lc

@@ -38,7 +38,10 @@ directory nothing is exported. ``LDAP_JAX_EXPORT=0`` turns exports off.
 
 The process that compiles an exported program also stores its executable there (keyed by the
 export's key and the machine's backend, see :func:`_executable`): a later process loads it
-directly, without lowering the exported module to look it up in JAX's cache.
+directly, without lowering the exported module to look it up in JAX's cache. Each program's
+compilation (or the load of its executable) runs in a thread of its own from the moment its export
+is ready: ``lc.solve`` exports its finish while XLA compiles its run (:func:`prepare`), and the
+files are written meanwhile or after the program is handed over.
 """
 
 from __future__ import annotations
@@ -61,11 +64,12 @@ import equinox as eqx
 import jax
 import numpy as np
 
-__all__ = ["enabled", "export_dir", "call", "differentiated"]
+__all__ = ["enabled", "export_dir", "call", "prepare", "differentiated"]
 
 SUBDIR = "ldap_jax_exports"
 _ADDRESS = re.compile(r" at 0x[0-9a-fA-F]+")
 _lock = threading.Lock()
+_lock_lapack = threading.Lock()
 _source: str | None = None
 _loaded: dict[Any, Callable | None] = {}  # in-process: key -> compiled callable (None: do not export)
 _keys: dict[Any, str | bool] = {}  # in-process: a call's structures -> its key (False: none)
@@ -130,10 +134,15 @@ def _describe(treedef, strict: bool = True) -> str | None:
     return f"{kind.__module__}.{kind.__qualname__}[{aux!r}]({','.join(children)})"
 
 
-def _signature(name: str, args: tuple) -> tuple[str, list, Any, Any] | None:
+def _is_shape(x: Any) -> bool:
+    return eqx.is_array(x) or isinstance(x, jax.ShapeDtypeStruct)
+
+
+def _signature(name: str, args: tuple, shapes: bool = False) -> tuple[str, list, Any, Any] | None:
     """``(key, array leaves, static part, array treedef)`` of a call of program ``name`` on
-    ``args``, or ``None`` if the structure cannot be keyed across processes."""
-    arrays, static = eqx.partition(args, eqx.is_array)
+    ``args``, or ``None`` if the structure cannot be keyed across processes. With ``shapes``,
+    ``jax.ShapeDtypeStruct`` leaves stand for arrays of their shape and dtype."""
+    arrays, static = eqx.partition(args, _is_shape if shapes else eqx.is_array)
     leaves, treedef = jax.tree_util.tree_flatten(arrays)
     static_leaves, static_def = jax.tree_util.tree_flatten(static)
     # a repeat call: the key by the tree structures' own equality (3 ms -> well under 1 ms a call)
@@ -287,6 +296,41 @@ def call(
         return runner(leaves)
 
 
+def prepare(
+    name: str, fun: Callable, args: tuple, out_template: Callable[[], Any], *, quick: bool = False
+) -> Any:
+    """Start what a later :func:`call` of program ``name`` on arguments like ``args`` needs (the
+    export, or its load, and the compilation, which runs in a thread of its own) and return the
+    program's output as ``jax.ShapeDtypeStruct`` leaves in ``out_template``'s structure, or
+    ``None`` where :func:`call` would not use an export.
+
+    ``args``' array leaves may be ``jax.ShapeDtypeStruct``s (an output of another program that
+    has not run yet): ``lc.solve`` prepares its finish while XLA compiles its run, so a first
+    solve takes the longer of the two rather than their sum. Only outside every JAX trace.
+
+    With ``quick``, the first process to export the program compiles it twice if it is the
+    process's first such program: first with :data:`QUICK_OPTIONS` (about half XLA's time; the
+    program runs about 3x slower), which the first calls use, then, in the same thread, with the
+    library's options, which later calls use once it is ready and whose executable is the one
+    stored for later processes. ``LDAP_JAX_QUICK_FIRST=0`` turns this off."""
+    if not enabled():
+        return None
+    from .._compilation_cache import in_trace
+
+    if in_trace():
+        return None
+    signature = _signature(name, args, shapes=True)
+    if signature is None:
+        return None
+    key, leaves, static, treedef = signature
+    with _lock:
+        runner = _loaded.get(key, NotImplemented)
+        if runner is NotImplemented:
+            runner = _load_or_export(name, key, fun, leaves, static, treedef, out_template, quick)
+            _loaded[key] = runner
+    return None if runner is None else runner.out_shapes
+
+
 #: the most Jacobian columns (scalars of the arrays it is taken with respect to) an exported
 #: derivative computes; above, the derivative is traced as written
 MAX_COLUMNS = 1000
@@ -433,7 +477,7 @@ def _out_structure(out_template: Callable[[], Any]):
     return jax.tree_util.tree_structure(out_template())
 
 
-def _load_or_export(name, key, fun, leaves, static, treedef, out_template) -> Callable | None:
+def _load_or_export(name, key, fun, leaves, static, treedef, out_template, quick=False) -> Callable | None:
     from jax import export as jex
 
     program_path, meta_path = _paths(key)
@@ -464,43 +508,138 @@ def _load_or_export(name, key, fun, leaves, static, treedef, out_template) -> Ca
 
         try:
             avals = [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in leaves]
-            exported = _without_locations(jex.export(jax.jit(flat))(*avals))
+            exported, lowered = _export_lowered(jax.jit(flat), avals)
             if traced_out[-1] != out_def:  # the template does not describe the output
                 return None
-            text = exported.mlir_module()
-            lapack = "lapack" in text  # a LAPACK call (none in the solver's)
-            custom = "custom_call" in text  # any call of a kernel registered at run time
+            # the module's bytecode holds its operations' and custom calls' names as strings
+            module = bytes(exported.mlir_module_serialized)
+            lapack = b"lapack" in module  # a LAPACK call (none in the solver's)
+            custom = b"custom_call" in module  # any call of a kernel registered at run time
+        except Exception as err:  # e.g. a host callback: not exportable, trace as usual
+            _warn_not_exported(err)
+            return None
+        runner = _runner(name, key, exported, leaves, out_def, lapack, custom, lowered, quick)
+        try:  # written while XLA compiles the program (another thread)
             _write(program_path, bytes(exported.serialize()))
             meta = {"out": _describe(out_def, strict=False), "lapack": lapack, "custom_calls": custom}
             _write(meta_path, json.dumps(meta).encode())
-        except Exception as err:  # e.g. a host callback: not exportable, trace as usual
-            warnings.warn(
-                f"lc.solve could not export its program ({type(err).__name__}: {err}); it is traced "
-                "in every new process (LDAP_JAX_EXPORT=0 turns exports off)",
-                stacklevel=4,
-            )
-            return None
+        except Exception as err:  # pragma: no cover - e.g. a full disk: traced again next time
+            _warn_not_exported(err)
+        return runner
+    return _runner(name, key, exported, leaves, out_def, lapack, custom)
+
+
+def _warn_not_exported(err: Exception) -> None:
+    warnings.warn(
+        f"lc.solve could not export its program ({type(err).__name__}: {err}); it is traced "
+        "in every new process (LDAP_JAX_EXPORT=0 turns exports off)",
+        stacklevel=5,
+    )
+
+
+class _Background:
+    """``fun()`` in a thread of its own (XLA's compilation releases the GIL, so the caller traces
+    and lowers other programs meanwhile); :meth:`result` waits for its value or raises its error.
+    ``fun`` returns ``(value, then)``: ``then`` (or ``None``) runs in that thread after the value
+    is handed over (storing the executable). The thread is not a daemon: a process waits for it
+    before it exits."""
+
+    def __init__(self, fun: Callable, name: str):
+        self._done = threading.Event()
+        self._value: Any = None
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, args=(fun,), name=f"ldap_jax-{name}", daemon=False)
+        self._thread.start()
+
+    def _run(self, fun: Callable) -> None:
+        then = None
+        try:
+            self._value, then = fun()
+        except BaseException as err:  # handed to the caller of result()
+            self._error = err
+        finally:
+            self._done.set()
+        if then is not None:
+            then()
+
+    def result(self) -> Any:
+        self._done.wait()
+        if self._error is not None:
+            raise self._error
+        return self._value
+
+    def forget(self) -> None:
+        """Drop the value (its caller holds it)."""
+        self._value = None
+
+
+def _runner(
+    name, key, exported, leaves, out_def, lapack: bool, custom: bool, lowered=None, quick: bool = False
+) -> Callable:
+    """The call of an exported program on its array leaves. Its compilation (or the load of its
+    stored executable) starts at once in a thread of its own; the first call waits for it.
+    ``lowered``: the module the export was made from, compiled as it is (see :func:`_executable`);
+    ``quick``: compiled first with :data:`QUICK_OPTIONS` (see :func:`prepare`)."""
+    from .._compilation_cache import compiler_options
+
     compiled = _compiled(exported, name)
     executable: list = [None]  # the compiled program, once the first call has it
+    optimised: list = [None]  # with quick: the program with the library's options, once ready
+    avals = [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in leaves]
+
+    # the quick program only for the first program of a process that asks for one: later in a
+    # process the second compilation competes with the process's own work (other programs'
+    # compilations) for the cores, and costs more than it saves
+    quick = quick and lowered is not None and not custom and not _quick_spent[0] and _quick_allowed()
+    if quick:
+        _quick_spent[0] = True
+
+    def build():
+        if not quick:
+            return _executable(key, compiled, exported, avals, lapack, custom, lowered)
+        try:
+            first = _compile_lowered(lowered, {**(compiler_options() or {}), **QUICK_OPTIONS})
+        except Exception:  # pragma: no cover - an XLA without these options
+            return _executable(key, compiled, exported, avals, lapack, custom, lowered)
+
+        def then():
+            program, store = _executable(key, compiled, exported, avals, lapack, custom, lowered)
+            optimised[0] = program
+            if store is not None:
+                store()
+
+        return first, then
+
+    pending = _Background(build, name)
 
     def runner(xs):
         # NumPy arrays: never weakly typed, so a value made under grad (a Python number that
         # became a weak-typed array) meets the same compiled program, not a copy compiled again
         xs = [np.asarray(x) for x in xs]
+        if optimised[0] is not None:
+            executable[0] = None  # the quick program: no longer held (nor its memory mappings)
+            return jax.tree_util.tree_unflatten(out_def, optimised[0](*xs))
         if executable[0] is None:
-            with _lock:  # the first call (the one that lowers, compiles or loads) in one thread
+            with _lock:  # the first call (the one that waits for the program) in one thread
                 if executable[0] is None:
-                    program = _executable(key, compiled, exported, xs, lapack, custom)
+                    program = pending.result()
                     outs = program(*xs)
                     executable[0] = program
+                    pending.forget()
                     return jax.tree_util.tree_unflatten(out_def, outs)
         return jax.tree_util.tree_unflatten(out_def, executable[0](*xs))
 
+    runner.out_shapes = jax.tree_util.tree_unflatten(
+        out_def, [jax.ShapeDtypeStruct(a.shape, a.dtype) for a in exported.out_avals]
+    )
     return runner
 
 
-def _executable(key: str, compiled, exported, xs: list, lapack: bool, custom: bool) -> Callable:
-    """The compiled program of an export for the arguments ``xs``.
+def _executable(
+    key: str, compiled, exported, xs: list, lapack: bool, custom: bool, lowered=None
+) -> tuple[Callable, Any]:
+    """The compiled program of an export for arguments of the shapes of ``xs``, and a function that
+    stores its executable (or ``None``): ``(program, store)``.
 
     Through ``jax.jit`` a process lowers the exported module (0.2-0.4 s of a warm first solve) to
     look the program up in JAX's persistent cache. Instead, the process that compiles the program
@@ -513,8 +652,8 @@ def _executable(key: str, compiled, exported, xs: list, lapack: bool, custom: bo
     that crashed the process at its first call (the gait tracker's)."""
     if custom:
         if lapack:
-            return compiled
-        return _lowered_without_lapack_setup(compiled)
+            return compiled, None
+        return _lowered_without_lapack_setup(compiled), None
     path = _executable_path(key)
     in_tree = jax.tree_util.tree_structure((tuple(xs), {}))
     if path is not None and path.exists():
@@ -522,7 +661,7 @@ def _executable(key: str, compiled, exported, xs: list, lapack: bool, custom: bo
             from jax.experimental.serialize_executable import deserialize_and_load
 
             loaded = deserialize_and_load(zlib.decompress(path.read_bytes()), in_tree, exported.out_tree)
-            return _checked_first_call(loaded, compiled, path, lapack)
+            return _checked_first_call(loaded, compiled, path, lapack), None
         except Exception:  # a damaged or foreign file: lower and compile as usual
             pass
     events = []
@@ -534,23 +673,32 @@ def _executable(key: str, compiled, exported, xs: list, lapack: bool, custom: bo
     thread = threading.get_ident()
     jax.monitoring.register_event_listener(listener)
     try:
-        with contextlib.nullcontext() if lapack else _without_lapack_setup():
-            lowered = compiled.lower(*xs)
-        executable = lowered.compile()
+        if lowered is not None:  # the export's own lowering: neither deserialised nor lowered again
+            from .._compilation_cache import compiler_options
+
+            executable = _compile_lowered(lowered, compiler_options())
+        else:
+            with contextlib.nullcontext() if lapack else _without_lapack_setup():
+                lowered = compiled.lower(*xs)
+            executable = lowered.compile()
     finally:
         jax.monitoring.unregister_event_listener(listener)
     # stored only when XLA compiled it here: JAX's cache was asked and had no copy (an
     # executable JAX already held in this process may have come from its cache)
     asked = "/jax/compilation_cache/compile_requests_use_cache" in events
     compiled_here = asked and "/jax/compilation_cache/cache_hits" not in events
-    if path is not None and compiled_here:
+    if path is None or not compiled_here:
+        return executable, None
+
+    def store():  # after the program is handed over: off the first call's path
         try:
             from jax.experimental.serialize_executable import serialize
 
             _write(path, zlib.compress(serialize(executable)[0], 1))
         except Exception:  # pragma: no cover - a backend that cannot serialise: not stored
             pass
-    return executable
+
+    return executable, store
 
 
 def _lowered_without_lapack_setup(compiled) -> Callable:
@@ -627,6 +775,69 @@ def _host_cpu() -> str:
     return text
 
 
+_quick_spent = [False]  # a quick program was compiled in this process
+
+
+def _quick_allowed() -> bool:
+    return os.environ.get("LDAP_JAX_QUICK_FIRST", "1").strip() not in ("0", "false", "False")
+
+
+#: XLA options of a first, quick compilation (:func:`prepare`'s ``quick``): LLVM without its
+#: optimisation passes. ``parallel_park``'s run program: XLA's compilation 3.9 against 7.7 s of
+#: CPU, the run 136-144 ms against 46-49 ms, the solution the same to 8e-14 (21 iterations)
+QUICK_OPTIONS: dict[str, Any] = {"xla_backend_optimization_level": 0}
+
+
+def _compile_lowered(lowered, options: dict | None):
+    """``lowered.compile(options)`` without writing JAX's persistent cache: the executable of an
+    export's own lowering is stored next to the export (:func:`_executable`), and JAX's key for
+    that module is never looked up again (a later process lowers the export, another module).
+    The write (serialising and compressing a few MB) would delay the program's first call."""
+    import math
+
+    from jax._src import config
+
+    with config.persistent_cache_min_compile_time_secs(math.inf):
+        return lowered.compile(options)
+
+
+def _export_lowered(fun_jit, avals: list) -> tuple[Any, Any]:
+    """``(exported, lowered)``: ``jax.export`` of ``fun_jit`` at ``avals`` without source locations
+    (:func:`_without_locations`), and the lowered module it was made from (``None`` where this
+    JAX's export cannot be taken apart: then as ``jax.export`` does, and stripped afterwards).
+
+    The module is stripped where it was lowered, before it is serialised, and XLA compiles that
+    module as it is: a first solve neither deserialises the module to strip it nor lowers the
+    export again to compile it (with MLIR's set-up, 0.3-0.5 s of the cold first solve). The
+    lowering leaves Python's tracebacks out of the locations (``parallel_park``'s run: 0.59
+    against 0.71 s, five alternating pairs under load)."""
+    try:
+        from jax._src import config
+        from jax._src.export import _export as internal
+        from jax._src.interpreters import mlir
+        from jax._src.lib.mlir import passmanager
+
+        traced = fun_jit.trace(*avals)
+        # no Python tracebacks in the locations (they are stripped): a sixth shorter lowering
+        with config.traceback_in_locations_limit(0):
+            lowered = traced.lower(
+                lowering_platforms=(internal.default_export_platform(),),
+                _private_parameters=mlir.LoweringParameters(
+                    for_export=True,
+                    hoist_constants_as_args=False,
+                    export_ignore_forward_compatibility=config.export_ignore_forward_compatibility.value,
+                ),
+            )
+        module = lowered._lowering.stablehlo()
+        with module.context:
+            passmanager.PassManager.parse("builtin.module(strip-debuginfo)").run(module.operation)
+        return internal._export_lowered(lowered, traced.jaxpr, traced.fun_name), lowered
+    except (ImportError, AttributeError, TypeError):  # pragma: no cover - a future JAX
+        from jax import export as jex
+
+        return _without_locations(jex.export(fun_jit)(*avals)), None
+
+
 def _without_locations(exported):
     """``exported`` with its module's source locations removed (MLIR's ``strip-debuginfo``).
 
@@ -653,31 +864,46 @@ def _without_locations(exported):
         return exported
 
 
+_skip_lapack_threads: dict[int, int] = {}  # the threads lowering without JAX's LAPACK set-up
+_skip_lapack_original: list = []  # JAX's own set-up while ours stands in for it
+
+
 @contextlib.contextmanager
 def _without_lapack_setup():
     """Lower an exported program without JAX's set-up of LAPACK on the CPU, in this thread.
 
     Lowering any exported program for the CPU first sets up jaxlib's LAPACK kernels, which imports
     SciPy's LAPACK (``scipy.linalg``): 0.4-1.4 s of a warm first solve of 1-3 s, measured. The
-    solver's programs hold no LAPACK call (checked at export: ``"lapack"`` in the module's text),
-    so theirs is skipped; a program with one is lowered as JAX does. Other threads are unaffected.
+    solver's programs hold no LAPACK call (checked at export: ``"lapack"`` in the module), so
+    theirs is skipped; a program with one is lowered as JAX does. Other threads are unaffected
+    (programs are lowered in several threads at once: see :class:`_Background`).
     """
     try:
         from jax._src.export import _export as internal
 
-        original = internal._ensure_backends_initialized
+        internal._ensure_backends_initialized  # noqa: B018 - present in this JAX
     except (ImportError, AttributeError):  # pragma: no cover - a future JAX: as JAX does
         yield
         return
     thread = threading.get_ident()
+    with _lock_lapack:
+        if not _skip_lapack_threads:
+            original = internal._ensure_backends_initialized
+            _skip_lapack_original.append(original)
 
-    def ensure(platforms):
-        if threading.get_ident() != thread:
-            return original(platforms)
-        return None
+            def ensure(platforms):
+                if threading.get_ident() in _skip_lapack_threads:
+                    return None
+                return original(platforms)
 
-    internal._ensure_backends_initialized = ensure
+            internal._ensure_backends_initialized = ensure
+        _skip_lapack_threads[thread] = _skip_lapack_threads.get(thread, 0) + 1
     try:
         yield
     finally:
-        internal._ensure_backends_initialized = original
+        with _lock_lapack:
+            _skip_lapack_threads[thread] -= 1
+            if not _skip_lapack_threads[thread]:
+                del _skip_lapack_threads[thread]
+            if not _skip_lapack_threads:
+                internal._ensure_backends_initialized = _skip_lapack_original.pop()

@@ -130,6 +130,11 @@ def solve(
     the same structure (other goal, bounds, model parameters or tolerances) neither traces nor
     compiles them (``LDAP_JAX_EXPORT=0`` turns this off). So are, under a top-level ``jax.grad``
     or ``jax.jvp``, the derivative's: the solution's Jacobian with respect to the task's arrays.
+    The first process to solve a structure compiles its interior-point program quickly first
+    (XLA's LLVM passes off: its first solves run about 3x slower, for the few seconds the
+    optimised program takes to compile behind them in another thread; the solutions agree to
+    1e-13) and stores the optimised one for later processes (``LDAP_JAX_QUICK_FIRST=0``: the
+    optimised program only).
 
     Args:
         task: a task with per-step sampled controls (:class:`SampledControls`).
@@ -186,6 +191,9 @@ def _solve_one(task: Task, params0, options: IPMOptions) -> Solution:
     # exported (_export: no tracing). The run's inputs are cut from differentiation, so it can be
     # the exported program under grad too; the finish (the IFT step) only at the top level.
     args = (_stopped(task), _stopped(params0), options)
+    shapes = _export.prepare("run", _run_one, args, _run_template, quick=True)
+    if shapes is not None:  # the finish exported (or loaded) while XLA compiles the run
+        _export.prepare("finish", _finish.__wrapped__, (task, *shapes), lambda: _template(params0))
     run = _export.call("run", _run_one, args, _run_template)
     st, violation = _run(*args) if run is NotImplemented else run
     return _finished(task, st, violation, params0)
