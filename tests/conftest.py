@@ -100,6 +100,11 @@ def pytest_configure(config):
     os.environ["JAX_COMPILATION_CACHE_DIR"] = cache
     os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = cache_min
     os.environ["JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES"] = "0"
+    # lc.solve's quick first compilation of a new export (LLVM unoptimised, then the optimised
+    # program behind it) is a second compilation at the suite's code generation, already
+    # unoptimised: off here and in the processes the tests start (tests/test_export.py turns it
+    # on for its own test of it)
+    os.environ["LDAP_JAX_QUICK_FIRST"] = "0"
 
     # A test worker's heap grows to millions of objects (JAX's caches of traced and compiled
     # programs), and each of Python's full collections then walks all of them: measured 20-22 full

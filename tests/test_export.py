@@ -100,6 +100,7 @@ def test_a_new_export_runs_its_quick_program_first_then_the_optimised_one(export
 
     monkeypatch.setattr(_export, "_compile_lowered", recording)
     monkeypatch.setattr(_export, "_quick_spent", [False])  # as in a new process
+    monkeypatch.setenv("LDAP_JAX_QUICK_FIRST", "1")  # off in the rest of the suite (conftest)
     task = lc.parallel_park(integrator=lj.RDP(), n_steps=40)
     reference = _traced(task)
     first = lc.solve(task)
