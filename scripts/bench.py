@@ -18,15 +18,22 @@ import json
 import os
 import platform
 import resource
+import sys
 import time
 from collections.abc import Callable
 
 import ldap_jax as lj
 
-# One XLA host device per core, so the headline is also measured with the batch sharded across
-# cores (one program per core, as the study runs), next to the default single device. Set before
-# JAX starts; everything else here runs on the first device as usual.
-lj.use_cpu_cores()
+if "--one-core" in sys.argv:
+    # the pinned process of ours_over_c (_one_core): on one core before JAX starts its threads,
+    # with JAX's one host device, as a user's process has it (with one device per core forced,
+    # the same one-device program ran 1.7x as long on the pinned core)
+    os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
+else:
+    # One XLA host device per core, so the headline is also measured with the batch sharded
+    # across cores (one program per core, as the study runs), next to the default single device.
+    # Set before JAX starts; everything else here runs on the first device as usual.
+    lj.use_cpu_cores()
 
 import jax
 
@@ -454,11 +461,11 @@ def ours_over_c(cfg: Config, log, *, one_core: bool = False) -> list[dict]:
 
 
 def _one_core(cfg: Config, log) -> list[dict]:
-    """:func:`ours_over_c` for one device in a new process pinned to one core
-    (``os.sched_setaffinity`` before it starts, so JAX's threads and C's share that core), its
-    rows read back; ``[]`` where a process cannot be pinned (no ``sched_setaffinity``)."""
+    """:func:`ours_over_c` for one device in a new process that pins itself to one core
+    (``os.sched_setaffinity`` before JAX starts, so JAX's threads and C's share that core; JAX
+    with its one host device, not one per core), its rows read back; ``[]`` where a process
+    cannot be pinned (no ``sched_setaffinity``)."""
     import subprocess
-    import sys
     import tempfile
 
     if not hasattr(os, "sched_setaffinity"):
@@ -469,7 +476,7 @@ def _one_core(cfg: Config, log) -> list[dict]:
     cmd = [sys.executable, os.path.abspath(__file__), "--one-core", out, "--rounds", str(cfg.rounds)]
     cmd += ["--quick"] if cfg.quick else []
     log(f"  one core: a process pinned to core {core}")
-    subprocess.run(cmd, check=True, preexec_fn=lambda: os.sched_setaffinity(0, {core}))
+    subprocess.run(cmd, check=True)
     with open(out) as f:
         return json.load(f)
 
