@@ -18,15 +18,22 @@ import json
 import os
 import platform
 import resource
+import sys
 import time
 from collections.abc import Callable
 
 import ldap_jax as lj
 
-# One XLA host device per core, so the headline is also measured with the batch sharded across
-# cores (one program per core, as the study runs), next to the default single device. Set before
-# JAX starts; everything else here runs on the first device as usual.
-lj.use_cpu_cores()
+if "--one-core" in sys.argv:
+    # the pinned process of ours_over_c (_one_core): on one core before JAX starts its threads,
+    # with JAX's one host device, as a user's process has it (with one device per core forced,
+    # the same one-device program ran 1.7x as long on the pinned core)
+    os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
+else:
+    # One XLA host device per core, so the headline is also measured with the batch sharded
+    # across cores (one program per core, as the study runs), next to the default single device.
+    # Set before JAX starts; everything else here runs on the first device as usual.
+    lj.use_cpu_cores()
 
 import jax
 
@@ -346,7 +353,7 @@ def compiled_c(cfg: Config, headline_rows, log) -> list[dict]:
 SUBSTEPS = {2: 1, 4: 5, 6: 9}
 
 
-def ours_over_c(cfg: Config, log) -> list[dict]:
+def ours_over_c(cfg: Config, log, *, one_core: bool = False) -> list[dict]:
     """The positions-only rollout (snakeboard, ``save="final", diagnostics=False``, B x N) for
     RDP orders 2, 4 and 6, as a user writes it, ``jax.jit(jax.vmap(...))`` (XLA's default
     options), and with ``compiler_options=lj.compiler_options()``; on one device against the C
@@ -355,7 +362,13 @@ def ours_over_c(cfg: Config, log) -> list[dict]:
     is ``SUBSTEPS[order]`` times its order-2 step (inlined polynomial sincos, the faster variant).
     Reported: wall and CPU time per step, medians over ``cfg.rounds`` rounds (CPU: the process's,
     JAX's threads included; C on one thread: the thread's), and the ratios ours/C: the median over
-    the rounds of each round's ratio (:func:`paired_ratio`; also the ratio of the minima)."""
+    the rounds of each round's ratio (:func:`paired_ratio`; also the ratio of the minima).
+
+    Then one core against one core (:func:`_one_core`): the one-device program under the plain
+    ``jax.jit`` and C in a process pinned to a single core. On one device XLA splits each kernel
+    of the loop over its threads, one per core, and the process's CPU time exceeds its wall time;
+    pinned, every thread shares one core (CPU time = wall time), as C's one thread has. With
+    ``one_core`` (the pinned process itself) only that layout is measured."""
     setup = _c_setup(cfg, log)
     if setup is None:
         return []
@@ -365,7 +378,9 @@ def ours_over_c(cfg: Config, log) -> list[dict]:
     system = SYSTEMS["snakeboard"]
     b, n = cfg.batch, cfg.steps
     layouts = [("1 device", data, 1)]
-    if jax.device_count() > 1:
+    if one_core:
+        layouts = [("1 core (process pinned)", data, 1)]
+    elif jax.device_count() > 1:
         layouts.append(
             (
                 f"sharded over {jax.device_count()} devices",
@@ -405,7 +420,7 @@ def ours_over_c(cfg: Config, log) -> list[dict]:
             return traj.q
 
         fns = {"plain jax.jit": jax.jit(jax.vmap(one))}
-        if opts is not None:
+        if opts is not None and not one_core:
             fns["lj.compiler_options()"] = jax.jit(jax.vmap(one), compiler_options=opts)
         for layout, args, threads in layouts:
             for f in fns.values():
@@ -440,7 +455,30 @@ def ours_over_c(cfg: Config, log) -> list[dict]:
                     f"(CPU {c_ns[1]:.1f}): ours/C {row['ours_over_c']:.3f} "
                     f"(CPU {row['ours_over_c_cpu']:.3f}, of minima {row['ours_over_c_of_min']:.3f})"
                 )
+    if not one_core:
+        rows += _one_core(cfg, log)
     return rows
+
+
+def _one_core(cfg: Config, log) -> list[dict]:
+    """:func:`ours_over_c` for one device in a new process that pins itself to one core
+    (``os.sched_setaffinity`` before JAX starts, so JAX's threads and C's share that core; JAX
+    with its one host device, not one per core), its rows read back; ``[]`` where a process
+    cannot be pinned (no ``sched_setaffinity``)."""
+    import subprocess
+    import tempfile
+
+    if not hasattr(os, "sched_setaffinity"):
+        log("  one core: no os.sched_setaffinity here, skipped")
+        return []
+    core = min(os.sched_getaffinity(0))
+    out = os.path.join(tempfile.mkdtemp(prefix="ldap_jax_bench_"), "one_core.json")
+    cmd = [sys.executable, os.path.abspath(__file__), "--one-core", out, "--rounds", str(cfg.rounds)]
+    cmd += ["--quick"] if cfg.quick else []
+    log(f"  one core: a process pinned to core {core}")
+    subprocess.run(cmd, check=True)
+    with open(out) as f:
+        return json.load(f)
 
 
 def default_call(cfg: Config, log) -> list[dict]:
@@ -1244,6 +1282,8 @@ def main(argv=None) -> int:
         "--rounds", type=int, default=None, help="paired rounds of the ratio sections (default: 30, quick 5)"
     )
     p.add_argument("--only", default=None, help=f"comma-separated sections among {', '.join(SECTIONS)}")
+    # the pinned process of ours_over_c (_one_core): writes its rows to the given file
+    p.add_argument("--one-core", default=None, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.repeats is not None and args.repeats < 1:
         p.error("--repeats must be a positive integer")
@@ -1253,6 +1293,15 @@ def main(argv=None) -> int:
     bad = [s for s in only if s not in SECTIONS]
     if bad:
         p.error(f"--only: unknown sections {bad}; choose among {', '.join(SECTIONS)}")
+    if args.one_core is not None:
+        cfg = Config.for_run(args.quick, args.repeats, args.rounds)
+        t0 = time.perf_counter()
+        rows = ours_over_c(
+            cfg, lambda msg: print(f"[{time.perf_counter() - t0:7.1f}s] {msg}", flush=True), one_core=True
+        )
+        with open(args.one_core, "w") as f:
+            json.dump(rows, f)
+        return 0
     if os.path.exists(args.out) and not os.path.isdir(args.out):
         p.error(f"--out {args.out} exists and is not a directory")
     os.makedirs(args.out, exist_ok=True)
