@@ -22,6 +22,7 @@ import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Float
 
+from . import _tracing
 from ._compilation_cache import compiled_unless_staged
 from ._linalg import solve
 from ._results import RESULTS
@@ -157,7 +158,7 @@ class DiscreteDynamics(eqx.Module):
         x = self._checked("x", x, "x")
         u0, u1 = (self._checked(name, u, "u").astype(x.dtype) for name, u in (("u0", u0), ("u1", u1)))
         state = self.unpack(x, u0)
-        state, info = self.integrator.step(self.system, self.h, state, self.stage_controls(u0, u1))
+        state, info = _tracing.step(self.integrator, self.system, self.h, state, self.stage_controls(u0, u1))
         x1 = self.pack(state)
         # a step traced in discretize (under the user's jit) is checked here: NaN and invalid_input
         ok = jnp.isfinite(self.h) & (self.h > 0)
