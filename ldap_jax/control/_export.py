@@ -283,13 +283,8 @@ def call(
     signature = _signature(name, args)
     if signature is None:
         return NotImplemented
-    key, leaves, static, treedef = signature
-    with _lock:
-        runner = _loaded.get(key, NotImplemented)
-        if runner is NotImplemented:
-            with _outside_traces(inside):
-                runner = _load_or_export(name, key, fun, leaves, static, treedef, out_template)
-            _loaded[key] = runner
+    leaves = signature[1]
+    runner = _runner_for(name, fun, signature, out_template, inside=inside)
     if runner is None:
         return NotImplemented
     with _outside_traces(inside):
@@ -322,13 +317,21 @@ def prepare(
     signature = _signature(name, args, shapes=True)
     if signature is None:
         return None
+    runner = _runner_for(name, fun, signature, out_template, quick=quick)
+    return None if runner is None else runner.out_shapes
+
+
+def _runner_for(name, fun, signature, out_template, *, quick=False, inside=False) -> Callable | None:
+    """The process's runner of program ``name`` for ``signature`` (:func:`_signature`): the one
+    already loaded, else loaded or exported now (``None``: not exported)."""
     key, leaves, static, treedef = signature
     with _lock:
         runner = _loaded.get(key, NotImplemented)
         if runner is NotImplemented:
-            runner = _load_or_export(name, key, fun, leaves, static, treedef, out_template, quick)
+            with _outside_traces(inside):
+                runner = _load_or_export(name, key, fun, leaves, static, treedef, out_template, quick)
             _loaded[key] = runner
-    return None if runner is None else runner.out_shapes
+    return runner
 
 
 #: the most Jacobian columns (scalars of the arrays it is taken with respect to) an exported
