@@ -302,7 +302,7 @@ class Snakeboard(AbstractClosedFormSystem):
         scale = 1.0 + jnp.sqrt(b[0] ** 2 + b[1] ** 2) + jnp.sqrt(sum(x**2 for x in state.mu))
         residual = jnp.sqrt(hor0**2 + (dl_du[1] - b[1]) ** 2 + vert**2) / scale
         singular = (jnp.abs(cn) < jnp.finfo(cn.dtype).eps ** 0.25) | (cn * ck < 0)
-        parts = dict(sd=sd, cd=cd, sa=sa, ca=ca, u_psi=u_psi, c=c, fa=fa, u_phi=u_phi)
+        parts = dict(sd=sd, cd=cd, sa=sa, ca=ca, u_psi=u_psi, c=c, fa=fa, u_phi=u_phi, b_psi=b[0])
         if retraction == "exp":
             pose, parts["rotation"] = pose_retract_exp(state.pose, hxi)
         else:
@@ -358,11 +358,16 @@ def _symmetric_step(system: Snakeboard, h: Array, state: SnakeboardKernelState, 
 
     The VJP is the transpose of the step's derivative written out (the solve of
     :meth:`Snakeboard._solve` by its adjoint, the rotations of the steering angle's cosine and sine,
-    the exponential map with its Taylor branch), reading the step's sines and cosines, ``u^psi``
-    and ``c`` from the forward pass: no cotangent sums over broadcast shapes, nothing of the step
-    recomputed but a few products and one division. The derivatives with respect to the model's
-    parameters and the step size come from JAX's own VJP of :meth:`Snakeboard.kernel_step`
-    (computed only when a loss asks for them). The residual, a diagnostic, has no derivative.
+    the exponential map with its Taylor branch), reading from the forward pass the sines and
+    cosines of the half turn ``h u^phi / 2`` and of the exponential map's rotation and the solve's
+    right-hand side ``b_psi``: no cotangent sums over broadcast shapes. The rest is rebuilt with the
+    step's own expressions, without a transcendental: ``(sin, cos) phi_a`` (the carried
+    ``(sin, cos) phi_k`` turned by the half turn) and ``(u^psi, c)`` (the 2 x 2 solve). Under the
+    rollout's reverse mode every saved value is an ``(N, B)`` array the forward loop writes and the
+    backward reads (5 here, against 8 with ``(sin, cos) phi_a``, ``u^psi`` and ``c`` saved). The
+    derivatives with respect to the model's parameters and the step size come from JAX's own VJP
+    of :meth:`Snakeboard.kernel_step` (computed only when a loss asks for them). The residual, a
+    diagnostic, has no derivative.
     """
     return system.kernel_step(0.5, h, "exp", state, c0, c1)
 
@@ -370,19 +375,24 @@ def _symmetric_step(system: Snakeboard, h: Array, state: SnakeboardKernelState, 
 def _symmetric_fwd(system, h, state, c0, c1):
     new, residual, singular, p = system._step_parts(0.5, h, "exp", state, c0, c1)
     sw, cw = p["rotation"]
-    sd, cd, u_psi, c = saved(p["sd"], p["cd"], p["u_psi"], p["c"])
-    return (new, residual, singular), (system, h, state, c0, c1, sd, cd, p["sa"], p["ca"], u_psi, c, sw, cw)
+    # the backward rebuilds (sin, cos) phi_a and (u^psi, c) from these and the carried state
+    # (products and the 2 x 2 solve, no transcendental): three stored (N, B) arrays fewer
+    sd, cd, b_psi = saved(p["sd"], p["cd"], p["b_psi"])
+    return (new, residual, singular), (system, h, state, c0, c1, sd, cd, b_psi, sw, cw)
 
 
 def _symmetric_bwd(res, ct):
-    system, h, state, c0, c1, sd, cd, sa, ca, u_psi, cc, sw0, cw0 = res
+    system, h, state, c0, c1, sd, cd, b_psi, sw0, cw0 = res
     nb = ct[0]
     m, l, inertia, jj = system.m, system.l, system.I, system.J
     ml2 = m * l**2
     ck, sk = state.cos_phi, state.sin_phi
     mu0, mu1 = state.mu[0], state.mu[1]
     g = state.pose
-    # forward values rebuilt from the saved ones
+    # forward values rebuilt from the saved ones (the same expressions as the step's)
+    nu = mu0 * (2 * sk * ck) + mu1 * (-2 * l * ck**2)
+    sa, ca = sk * cd + ck * sd, ck * cd - sk * sd
+    u_psi, cc = system._solve(b_psi, nu, sk, ck, sa, ca)
     xi0 = cc * 2 * sa * ca
     xi1 = -2 * l * ca**2 * cc
     w, v2 = h * xi0, h * xi1
@@ -440,8 +450,7 @@ def _symmetric_bwd(res, ct):
     s2a, s2k = 2 * sa * ca, 2 * sk * ck
     gk = ca * ck + sa * sk
     kappa = 4 * ca * ck * gk
-    b1_ = u_psi + s2a * cc  # b_psi / I, the solve's first row (the controls are not read back)
-    nu = mu0 * (2 * sk * ck) + mu1 * (-2 * l * ck**2)
+    b1_ = b_psi / inertia
     det = ml2 * kappa - inertia * s2k * s2a
     ub, cb = u_psib / det, ccb / det
     detb = -(ub * u_psi + cb * cc)
