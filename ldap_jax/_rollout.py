@@ -311,6 +311,9 @@ def rollout(
         # discarded: cut their gradient with a select, so that a non-finite partial inside them
         # (times the zero cotangent a discarded value gets) cannot reach the inputs as a NaN
         failed_before = carry.result != RESULTS.successful
+        if checkpoint is False:
+            # kept as a mask for reverse mode (one byte per step and member, not the int32 code)
+            (failed_before,) = saved(failed_before)
         state_in, obs_in = _stop_if(failed_before, (carry.state, carry.obs))
         if sample_node is None:
             c_stage = sample(k, obs_in)
@@ -320,8 +323,12 @@ def rollout(
             # carried channel by channel (carried as one vector, XLA stored it twice, in two
             # layouts: 3 kernels per step more)
             c_next = tuple(c_end)
-            c_stage = jnp.stack([vector(carry.c_node), c_end])
-        c_stage = _stop_if(failed_before, c_stage)
+            # the gradient cut on each scalar before they are stacked (a select on the stacked
+            # (2, channels) array left its cotangent in a (B, 2, 2) layout that every sampler
+            # term's backward kernel transposed again)
+            c_stage = jnp.stack([vector(x) for x in _stop_if(failed_before, (carry.c_node, c_next))])
+        if sample_node is None:
+            c_stage = _stop_if(failed_before, c_stage)
         new_state, info = _tracing.step(integrator, system, h, state_in, c_stage)
         step_result = info.result
         obs, work, abs_work, impulse = carry.obs, carry.work, carry.abs_work, carry.impulse

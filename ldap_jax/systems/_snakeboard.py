@@ -302,7 +302,8 @@ class Snakeboard(AbstractClosedFormSystem):
         scale = 1.0 + jnp.sqrt(b[0] ** 2 + b[1] ** 2) + jnp.sqrt(sum(x**2 for x in state.mu))
         residual = jnp.sqrt(hor0**2 + (dl_du[1] - b[1]) ** 2 + vert**2) / scale
         singular = (jnp.abs(cn) < jnp.finfo(cn.dtype).eps ** 0.25) | (cn * ck < 0)
-        parts = dict(sd=sd, cd=cd, sa=sa, ca=ca, u_psi=u_psi, c=c, fa=fa, u_phi=u_phi)
+        parts = dict(sd=sd, cd=cd, sa=sa, ca=ca, u_psi=u_psi, c=c, fa=fa, u_phi=u_phi, b_psi=b[0])
+        parts["b_phi"] = b[1]
         if retraction == "exp":
             pose, parts["rotation"] = pose_retract_exp(state.pose, hxi)
         else:
@@ -358,37 +359,50 @@ def _symmetric_step(system: Snakeboard, h: Array, state: SnakeboardKernelState, 
 
     The VJP is the transpose of the step's derivative written out (the solve of
     :meth:`Snakeboard._solve` by its adjoint, the rotations of the steering angle's cosine and sine,
-    the exponential map with its Taylor branch), reading the step's sines and cosines, ``u^psi``
-    and ``c`` from the forward pass: no cotangent sums over broadcast shapes, nothing of the step
-    recomputed but a few products and one division. The derivatives with respect to the model's
-    parameters and the step size come from JAX's own VJP of :meth:`Snakeboard.kernel_step`
-    (computed only when a loss asks for them). The residual, a diagnostic, has no derivative.
+    the exponential map with its Taylor branch): no cotangent sums over broadcast shapes. It reads
+    from the forward pass only the step's right-hand side ``b = pu + h f / 2`` (it depends on the
+    controls, whose sines it would otherwise recompute) and rebuilds the rest from ``b`` and the
+    carried state with the step's own expressions: the half turn's ``(sin, cos)(h u^phi / 2)``,
+    ``(sin, cos) phi_a`` (the carried ``(sin, cos) phi_k`` turned by it), ``(u^psi, c)`` (the
+    2 x 2 solve) and the rotation's ``(sin, cos) w``. Under the rollout's reverse mode every saved
+    value is an ``(N, B)`` array that the forward loop writes and the backward reads, its memory
+    mapped afresh (first-touch page faults) at every call: 2 here, against 8 with the sines and
+    cosines, ``u^psi`` and ``c`` saved (``docs/development.md`` has the measurements). The
+    derivatives with respect to the model's parameters and the step size come from JAX's own VJP
+    of :meth:`Snakeboard.kernel_step` (computed only when a loss asks for them). The residual, a
+    diagnostic, has no derivative.
     """
     return system.kernel_step(0.5, h, "exp", state, c0, c1)
 
 
 def _symmetric_fwd(system, h, state, c0, c1):
     new, residual, singular, p = system._step_parts(0.5, h, "exp", state, c0, c1)
-    sw, cw = p["rotation"]
-    sd, cd, u_psi, c = saved(p["sd"], p["cd"], p["u_psi"], p["c"])
-    return (new, residual, singular), (system, h, state, c0, c1, sd, cd, p["sa"], p["ca"], u_psi, c, sw, cw)
+    # the step's right-hand side b = pu + h f / 2 (it reads the controls): the backward rebuilds
+    # the rest from it and the carried state with the step's own expressions
+    b_psi, b_phi = saved(p["b_psi"], p["b_phi"])
+    return (new, residual, singular), (system, h, state, c0, c1, b_psi, b_phi)
 
 
 def _symmetric_bwd(res, ct):
-    system, h, state, c0, c1, sd, cd, sa, ca, u_psi, cc, sw0, cw0 = res
+    system, h, state, c0, c1, b_psi, b_phi = res
     nb = ct[0]
     m, l, inertia, jj = system.m, system.l, system.I, system.J
     ml2 = m * l**2
+    sd, cd = sincos(0.5 * h * (b_phi / (2 * jj)))  # the half turn h u^phi / 2
     ck, sk = state.cos_phi, state.sin_phi
     mu0, mu1 = state.mu[0], state.mu[1]
     g = state.pose
-    # forward values rebuilt from the saved ones
+    # forward values rebuilt from the saved ones (the same expressions as the step's)
+    nu = mu0 * (2 * sk * ck) + mu1 * (-2 * l * ck**2)
+    sa, ca = sk * cd + ck * sd, ck * cd - sk * sd
+    u_psi, cc = system._solve(b_psi, nu, sk, ck, sa, ca)
     xi0 = cc * 2 * sa * ca
     xi1 = -2 * l * ca**2 * cc
     w, v2 = h * xi0, h * xi1
     n2 = m * xi1
     small = jnp.abs(w) < jnp.finfo(w.dtype).eps ** 0.25
     ws = jnp.where(small, jnp.ones_like(w), w)
+    sw0, cw0 = sincos(ws)  # the exponential map's rotation (its safe stand-in, as the step's)
     big_a, big_b = sw0 / ws, (1.0 - cw0) / ws
     ta = jnp.where(small, 1.0 - w**2 / 6.0 + w**4 / 120.0, big_a)
     tb = jnp.where(small, w / 2.0 - w**3 / 24.0 + w**5 / 720.0, big_b)
@@ -440,8 +454,7 @@ def _symmetric_bwd(res, ct):
     s2a, s2k = 2 * sa * ca, 2 * sk * ck
     gk = ca * ck + sa * sk
     kappa = 4 * ca * ck * gk
-    b1_ = u_psi + s2a * cc  # b_psi / I, the solve's first row (the controls are not read back)
-    nu = mu0 * (2 * sk * ck) + mu1 * (-2 * l * ck**2)
+    b1_ = b_psi / inertia
     det = ml2 * kappa - inertia * s2k * s2a
     ub, cb = u_psib / det, ccb / det
     detb = -(ub * u_psi + cb * cc)
