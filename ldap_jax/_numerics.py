@@ -144,9 +144,12 @@ def sincos_whole(x: Array) -> tuple[Array, Array]:
 
 
 #: Name of the values reverse mode keeps from the forward pass of a rollout (the default
-#: ``checkpoint=False``): the transcendental values of each step and its failure masks. Everything
-#: else in a closed-form step is cheap arithmetic that the backward pass recomputes from the carry,
-#: which is faster than storing the ~55 per-step intermediates autodiff would otherwise keep
+#: ``checkpoint=False``): a few values per step from which the backward pass rebuilds the rest
+#: with the step's own expressions, and the failure mask. Which ones is each step's choice: the
+#: car's step keeps its transcendental values; the snakeboard's symmetric step keeps only its
+#: right-hand side ``b = pu + h f / 2`` (which reads the controls) and recomputes its sines from it
+#: and the carry, because every stored ``(N, B)`` array costs first-touch page faults at each call.
+#: Either is faster than storing the ~55 per-step intermediates autodiff would otherwise keep
 #: (measured: gradient / forward 3.6 -> 2.9 for the snakeboard, B = N = 1000).
 SAVED = "ldap_jax_saved"
 
