@@ -509,22 +509,9 @@ def _load_or_export(name, key, fun, leaves, static, treedef, out_template, quick
 
         flat.__name__ = flat.__qualname__ = f"export_{name}"
 
-        early: list = [None]  # the quick program's compilation, started before the export is built
-
-        def lowered_first(lowered):
-            # the quick program only for the first program of a process that asks for one: later
-            # in a process the second compilation competes with the process's own work (other
-            # programs' compilations) for the cores, and costs more than it saves
-            if quick and not _quick_spent[0] and _quick_allowed():
-                from .._compilation_cache import compiler_options
-
-                _quick_spent[0] = True
-                options = compiler_options() or {}
-                early[0] = _Background(lambda: (_quick_program(lowered, options), None), f"{name}-quick")
-
         try:
             avals = [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in leaves]
-            exported, lowered = _export_lowered(jax.jit(flat), avals, lowered_first)
+            exported, lowered = _export_lowered(jax.jit(flat), avals)
             if traced_out[-1] != out_def:  # the template does not describe the output
                 return None
             # the module's bytecode holds its operations' and custom calls' names as strings
@@ -534,7 +521,7 @@ def _load_or_export(name, key, fun, leaves, static, treedef, out_template, quick
         except Exception as err:  # e.g. a host callback: not exportable, trace as usual
             _warn_not_exported(err)
             return None
-        runner = _runner(name, key, exported, leaves, out_def, lapack, custom, lowered, early[0])
+        runner = _runner(name, key, exported, leaves, out_def, lapack, custom, lowered, quick)
         try:  # written while XLA compiles the program (another thread)
             _write(program_path, bytes(exported.serialize()))
             meta = {"out": _describe(out_def, strict=False), "lapack": lapack, "custom_calls": custom}
@@ -590,27 +577,30 @@ class _Background:
 
 
 def _runner(
-    name, key, exported, leaves, out_def, lapack: bool, custom: bool, lowered=None, early=None
+    name, key, exported, leaves, out_def, lapack: bool, custom: bool, lowered=None, quick: bool = False
 ) -> Callable:
     """The call of an exported program on its array leaves. Its compilation (or the load of its
     stored executable) starts at once in a thread of its own; the first call waits for it.
     ``lowered``: the module the export was made from, compiled as it is (see :func:`_executable`);
-    ``early``: the compilation of its quick program (:data:`QUICK_OPTIONS`, see :func:`prepare`),
-    started in a thread of its own as soon as the module was lowered (before the export was built
-    from it), which the first calls run; the optimised program is compiled after it."""
+    ``quick``: compiled first with :data:`QUICK_OPTIONS` (see :func:`prepare`)."""
+    from .._compilation_cache import compiler_options
+
     compiled = _compiled(exported, name)
     executable: list = [None]  # the compiled program, once the first call has it
     optimised: list = [None]  # with quick: the program with the library's options, once ready
     avals = [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in leaves]
 
-    # (a program with a custom call runs as JAX compiles it: its quick program is not used)
-    quick = early is not None and lowered is not None and not custom
+    # the quick program only for the first program of a process that asks for one: later in a
+    # process the second compilation competes with the process's own work (other programs'
+    # compilations) for the cores, and costs more than it saves
+    quick = quick and lowered is not None and not custom and not _quick_spent[0] and _quick_allowed()
+    if quick:
+        _quick_spent[0] = True
 
     def build():
         if not quick:
             return _executable(key, compiled, exported, avals, lapack, custom, lowered)
-        first = early.result()
-        early.forget()
+        first = _quick_program(lowered, compiler_options() or {})
         if first is None:  # an XLA that knows none of the quick options: compiled once
             return _executable(key, compiled, exported, avals, lapack, custom, lowered)
 
@@ -837,12 +827,10 @@ def _compile_lowered(lowered, options: dict | None):
         return lowered.compile(options)
 
 
-def _export_lowered(fun_jit, avals: list, lowered_first: Callable | None = None) -> tuple[Any, Any]:
+def _export_lowered(fun_jit, avals: list) -> tuple[Any, Any]:
     """``(exported, lowered)``: ``jax.export`` of ``fun_jit`` at ``avals`` without source locations
     (:func:`_without_locations`), and the lowered module it was made from (``None`` where this
     JAX's export cannot be taken apart: then as ``jax.export`` does, and stripped afterwards).
-    ``lowered_first(lowered)`` is called before the export is built from the module (0.2-0.25 s
-    for ``parallel_park``'s run): :func:`_load_or_export` starts the quick compilation there.
 
     The module is stripped where it was lowered, before it is serialised, and XLA compiles that
     module as it is: a first solve neither deserialises the module to strip it nor lowers the
@@ -869,8 +857,6 @@ def _export_lowered(fun_jit, avals: list, lowered_first: Callable | None = None)
         module = lowered._lowering.stablehlo()
         with module.context:
             passmanager.PassManager.parse("builtin.module(strip-debuginfo)").run(module.operation)
-        if lowered_first is not None:
-            lowered_first(lowered)
         return internal._export_lowered(lowered, traced.jaxpr, traced.fun_name), lowered
     except (ImportError, AttributeError, TypeError):  # pragma: no cover - a future JAX
         from jax import export as jex
