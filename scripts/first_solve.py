@@ -5,6 +5,7 @@
     python scripts/first_solve.py --cache DIR --runs 0   # one process on the cache DIR
     python scripts/first_solve.py --no-export     # the compilation cache only (no exported programs)
     python scripts/first_solve.py --program       # the run program alone: XLA's time, its size
+    python scripts/first_solve.py --program --quick   # ... compiled as the quick tier's program
 
 Each measurement is a new Python process (``--child``) that imports the library, turns on the
 persistent compilation cache in a directory of this script's own (a fresh temporary one, so the
@@ -24,7 +25,9 @@ first process is cold and the later ones warm; ``--cache DIR`` to keep it) and t
 ``--program [--task NAME] [--hlo FILE]`` instead lowers a task's interior-point run program
 (``parallel_park`` by default) in this process, compiles it with the library's XLA options and
 prints the compilation's wall and CPU time, the optimised HLO's instruction, fusion and while-loop
-counts (``--hlo`` writes its text) and the run's time (the least of 7 calls).
+counts (``--hlo`` writes its text) and the run's time (the least of 7 calls); ``--quick`` compiles
+the program a new export's first calls run (the quick tier's options on top), ``--outputs FILE``
+writes the run's outputs (to compare two compilations' answers).
 
 With ``--no-export`` the child sets ``LDAP_JAX_EXPORT=0`` (``lc.solve`` then never uses an
 exported program). Prints a table; ``--json FILE`` writes the numbers. The children inherit the
@@ -112,17 +115,20 @@ def child(cache: str) -> dict:
     }
 
 
-def program(task_name: str, hlo: str | None) -> None:
-    """The run program of ``lc.<task_name>()`` alone: compilation time, size, run time."""
+def program(task_name: str, hlo: str | None, quick: bool = False, outputs: str | None = None) -> None:
+    """The run program of ``lc.<task_name>()`` alone: compilation time, size, run time. With
+    ``quick``: compiled with the quick tier's options on top (``_export.QUICK_OPTIONS``, the
+    first calls' program of a new export); ``outputs``: an ``.npz`` file of the run's output leaves."""
     import re
 
     import equinox as eqx
     import jax
+    import numpy as np
 
     jax.config.update("jax_enable_x64", True)
     import ldap_jax as lj
     from ldap_jax import control as lc
-    from ldap_jax.control import _solve
+    from ldap_jax.control import _export, _solve
 
     task = getattr(lc, task_name)()
     options, params0, _ = _solve._checked(task, None, 1e-8, 1000, "base", 0.1, None)
@@ -130,7 +136,8 @@ def program(task_name: str, hlo: str | None) -> None:
     lowered = eqx.filter_jit(_solve._run_one).lower(task, params0, options)
     t_lower = time.perf_counter() - t0
     c0, t0 = time.process_time(), time.perf_counter()
-    compiled = lowered.compile(lj.compiler_options())
+    xla_options = {**(lj.compiler_options() or {}), **(_export.QUICK_OPTIONS if quick else {})}
+    compiled = lowered.compile(xla_options)
     t_compile, c_compile = time.perf_counter() - t0, time.process_time() - c0
     text = compiled.compiled.as_text()
     if hlo:
@@ -141,11 +148,15 @@ def program(task_name: str, hlo: str | None) -> None:
     runs = []
     for _ in range(7):
         t0 = time.perf_counter()
-        st, _ = compiled(task, params0, options)
+        st, out = compiled(task, params0, options)
         jax.block_until_ready(st)
         runs.append(time.perf_counter() - t0)
+    if outputs:
+        leaves = jax.tree_util.tree_leaves(eqx.filter((st, out), eqx.is_array))
+        np.savez(outputs, *[np.asarray(x) for x in leaves])
     print(
-        f"{task_name}: lowering {t_lower:.2f} s, XLA compilation {t_compile:.2f} s (CPU {c_compile:.2f} s), "
+        f"{task_name}{' (quick)' if quick else ''}: lowering {t_lower:.2f} s, "
+        f"XLA compilation {t_compile:.2f} s (CPU {c_compile:.2f} s), "
         f"{instructions} instructions, {fusions} fusions, {text.count(' while(')} while loops; "
         f"run {1e3 * min(runs):.1f} ms ({int(st.iteration)} iterations, KKT error {float(st.error):.3e})"
     )
@@ -199,9 +210,11 @@ def main() -> None:
     p.add_argument("--program", action="store_true", help="time and count the run program alone")
     p.add_argument("--task", default="parallel_park", help="the task of --program")
     p.add_argument("--hlo", default=None, help="with --program: write the optimised HLO here")
+    p.add_argument("--quick", action="store_true", help="with --program: compile the quick tier's program")
+    p.add_argument("--outputs", default=None, help="with --program: write the run's outputs (.npz) here")
     args = p.parse_args()
     if args.program:
-        program(args.task, args.hlo)
+        program(args.task, args.hlo, args.quick, args.outputs)
         return
     if args.child:
         print(json.dumps(child(args.cache)))

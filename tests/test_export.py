@@ -89,7 +89,8 @@ def test_a_new_export_runs_its_quick_program_first_then_the_optimised_one(export
     ``QUICK_OPTIONS`` (the first call runs that program), then with the library's options (the
     calls after it is ready run that one, and its executable is the one stored). Both give the
     traced program's solution to 1e-12. Only a process's first such program: the next new export
-    compiles once. Without the quick options (an XLA that rejects them) the run compiles once,
+    compiles once. An XLA that rejects the newer of the quick options (``QUICK_NEWER``) compiles
+    the quick program without them; one that rejects the quick options compiles the run once,
     with the library's options, and solves the same."""
     calls = []
     original = _export._compile_lowered
@@ -118,6 +119,24 @@ def test_a_new_export_runs_its_quick_program_first_then_the_optimised_one(export
     lc.solve(task)
     _join_background_compilations()
     assert len(calls) == 2 and not any(c.items() >= _export.QUICK_OPTIONS.items() for c in calls), calls
+
+    older = dict(_export.QUICK_OPTIONS)
+    for name in _export.QUICK_NEWER:
+        older.pop(name, None)
+    _export._loaded.clear()
+    monkeypatch.setattr(_export, "_quick_spent", [False])
+    monkeypatch.setattr(_export, "QUICK_OPTIONS", {**_export.QUICK_OPTIONS, "xla_no_such_option": 1})
+    monkeypatch.setattr(_export, "QUICK_NEWER", (*_export.QUICK_NEWER, "xla_no_such_option"))
+    for path in exports.iterdir():
+        path.unlink()
+    calls.clear()
+    fourth = lc.solve(task)
+    _join_background_compilations()
+    # rejected with the unknown option, then compiled without the newer ones; the run's and the
+    # finish's programs with the library's options
+    assert len(calls) == 4 and "xla_no_such_option" in calls[0], calls
+    assert sum(c.items() >= older.items() and "xla_no_such_option" not in c for c in calls) == 1, calls
+    _assert_same(fourth, reference)
 
     _export._loaded.clear()
     monkeypatch.setattr(_export, "_quick_spent", [False])

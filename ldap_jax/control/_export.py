@@ -600,9 +600,8 @@ def _runner(
     def build():
         if not quick:
             return _executable(key, compiled, exported, avals, lapack, custom, lowered)
-        try:
-            first = _compile_lowered(lowered, {**(compiler_options() or {}), **QUICK_OPTIONS})
-        except Exception:  # pragma: no cover - an XLA without these options
+        first = _quick_program(lowered, compiler_options() or {})
+        if first is None:  # an XLA that knows none of the quick options: compiled once
             return _executable(key, compiled, exported, avals, lapack, custom, lowered)
 
         def then():
@@ -786,9 +785,33 @@ def _quick_allowed() -> bool:
 
 
 #: XLA options of a first, quick compilation (:func:`prepare`'s ``quick``): LLVM without its
-#: optimisation passes. ``parallel_park``'s run program: XLA's compilation 3.9 against 7.7 s of
-#: CPU, the run 136-144 ms against 46-49 ms, the solution the same to 8e-14 (21 iterations)
-QUICK_OPTIONS: dict[str, Any] = {"xla_backend_optimization_level": 0}
+#: optimisation passes (``parallel_park``'s run program: XLA's compilation 3.9 against 7.7 s of
+#: CPU, the run 136-144 ms against 46-49 ms, the solution the same to 8e-14, 21 iterations), nor
+#: its expensive ones, XLA's fast-compile preset of HLO passes and one LLVM module instead of
+#: several compiled on threads (the optimised program compiles on the other core meanwhile): on
+#: top of the first, XLA's compilation of that program 0.8x again
+QUICK_OPTIONS: dict[str, Any] = {
+    "xla_backend_optimization_level": 0,
+    "xla_llvm_disable_expensive_passes": True,
+    "xla_cpu_opt_preset": "CPU_OPT_PRESET_FAST_COMPILE",
+    "xla_cpu_parallel_codegen_split_count": 1,
+}
+#: the quick options an older XLA may not know (it rejects the compilation): then tried without them
+QUICK_NEWER = ("xla_cpu_opt_preset", "xla_cpu_parallel_codegen_split_count")
+
+
+def _quick_program(lowered, options: dict):
+    """``lowered`` compiled with ``options`` and :data:`QUICK_OPTIONS` on top; without the options
+    of :data:`QUICK_NEWER` if XLA rejects them, or ``None`` if it rejects the rest too."""
+    quick = {**options, **QUICK_OPTIONS}
+    older = {k: v for k, v in quick.items() if k not in QUICK_NEWER}
+    # the older set only where it differs from both (else it is the quick or the optimised program)
+    for candidate in (quick, older) if older not in (quick, options) else (quick,):
+        try:
+            return _compile_lowered(lowered, candidate)
+        except Exception:  # an XLA without (some of) these options: fewer, or none
+            continue
+    return None
 
 
 def _compile_lowered(lowered, options: dict | None):
