@@ -316,7 +316,7 @@ def rollout(
             (failed_before,) = saved(failed_before)
         state_in, obs_in = _stop_if(failed_before, (carry.state, carry.obs))
         if sample_node is None:
-            c_stage = sample(k, obs_in)
+            c_stage = _stop_if(failed_before, sample(k, obs_in))
             c_next = None
         else:
             c_end = sample_node(node_time(k + 1))
@@ -327,8 +327,6 @@ def rollout(
             # (2, channels) array left its cotangent in a (B, 2, 2) layout that every sampler
             # term's backward kernel transposed again)
             c_stage = jnp.stack([vector(x) for x in _stop_if(failed_before, (carry.c_node, c_next))])
-        if sample_node is None:
-            c_stage = _stop_if(failed_before, c_stage)
         new_state, info = _tracing.step(integrator, system, h, state_in, c_stage)
         step_result = info.result
         obs, work, abs_work, impulse = carry.obs, carry.work, carry.abs_work, carry.impulse

@@ -113,6 +113,9 @@ assert rp_around["final_position_error"] < 1e-6
 assert bool(gait.converged) and np.all(cycles["return_error"] < 1e-5)
 assert tracker.n_channels == 2 and np.isfinite(float(jax.grad(optimal_effort)(1.0)))
 """,
+    # the plotting guide's convergence figure: the orders fitted to the errors the page itself
+    # computed (RDP 2, RK4 4) must come out within 10% of the methods' orders, so a figure drawn
+    # from a broken integrator or a mislabelled curve fails here; and every figure file exists
     "plotting.md": """
 assert 1.8 < plotting.fitted_order(steps, errors["RDP"], floor=1e-11) < 2.2
 assert 3.6 < plotting.fitted_order(steps, errors["RK4"], floor=1e-11) < 4.4

@@ -17,8 +17,8 @@ from ..lie._scalar import (
     dtau1_transpose,
     pose_from_xy_theta,
     pose_retract,
-    pose_retract_exp,
 )
+from ..lie._se2 import small_angle
 from ._base import concrete, physical_parameter, positive_checks, random_draws
 from ._closed_form import AbstractClosedFormSystem
 
@@ -259,7 +259,8 @@ class Snakeboard(AbstractClosedFormSystem):
         return self.kernel_step(alpha, h, retraction, state, c0, c1)
 
     def _step_parts(self, alpha, h, retraction, state, c0, c1):
-        """:meth:`kernel_step` and the intermediate values its VJP reads."""
+        """:meth:`kernel_step` and its right-hand side ``b = pu + h (1 - alpha) f_{k+alpha}``
+        (the one intermediate value its VJP reads)."""
         a = alpha
         m, l, inertia, jj = self.m, self.l, self.I, self.J
         ml2 = m * l**2
@@ -268,7 +269,6 @@ class Snakeboard(AbstractClosedFormSystem):
         b = (state.pu[0] + h * (1 - a) * fa[0], state.pu[1] + h * (1 - a) * fa[1])
         u_phi = b[1] / (2 * jj)
         phi_next = state.phi + h * u_phi
-        sd = cd = None
         if isinstance(a, float) and a == 0.0:  # phi_a = phi_k: reuse the carried values
             sa, ca = sk, ck
             sn, cn = sincos(phi_next)
@@ -279,8 +279,8 @@ class Snakeboard(AbstractClosedFormSystem):
             # phi_a and phi_{k+1} are phi_k turned by d and 2 d, d = h u^phi / 2: one sincos, two
             # rotations of the carried (cos, sin), renormalised to first order at every step
             sd, cd = sincos(0.5 * h * u_phi)
-            sa, ca = sk * cd + ck * sd, ck * cd - sk * sd
-            sn, cn = sa * cd + ca * sd, ca * cd - sa * sd
+            sa, ca = _turned(sk, ck, sd, cd)
+            sn, cn = _turned(sa, ca, sd, cd)
             unit = 1.5 - 0.5 * (sn * sn + cn * cn)  # one Newton step back to the unit circle
             sn, cn = sn * unit, cn * unit
         else:
@@ -302,14 +302,8 @@ class Snakeboard(AbstractClosedFormSystem):
         scale = 1.0 + jnp.sqrt(b[0] ** 2 + b[1] ** 2) + jnp.sqrt(sum(x**2 for x in state.mu))
         residual = jnp.sqrt(hor0**2 + (dl_du[1] - b[1]) ** 2 + vert**2) / scale
         singular = (jnp.abs(cn) < jnp.finfo(cn.dtype).eps ** 0.25) | (cn * ck < 0)
-        parts = dict(sd=sd, cd=cd, sa=sa, ca=ca, u_psi=u_psi, c=c, fa=fa, u_phi=u_phi, b_psi=b[0])
-        parts["b_phi"] = b[1]
-        if retraction == "exp":
-            pose, parts["rotation"] = pose_retract_exp(state.pose, hxi)
-        else:
-            pose = pose_retract(state.pose, hxi, retraction)
         new = SnakeboardKernelState(
-            pose,
+            pose_retract(state.pose, hxi, retraction),
             state.psi + h * u_psi,
             phi_next,
             cn,
@@ -317,7 +311,7 @@ class Snakeboard(AbstractClosedFormSystem):
             (dl_du[0] + h * a * fa[0], dl_du[1] + h * a * fa[1]),
             dtau1_transpose(hxi, mu_new, -1.0),
         )
-        return new, residual, singular, parts
+        return new, residual, singular, b
 
     def _kernel_velocity(self, state):
         """Configuration, velocities ``(u, xi)`` from the carried momenta (:meth:`_solve` at
@@ -353,6 +347,11 @@ class Snakeboard(AbstractClosedFormSystem):
         return q, body_to_qdot(state.pose, u, xi)
 
 
+def _turned(s: Array, c: Array, sd: Array, cd: Array) -> tuple[Array, Array]:
+    """``(sin, cos)(x + d)`` from ``(sin, cos) x`` and ``(sin, cos) d``: a rotation by ``d``."""
+    return s * cd + c * sd, c * cd - s * sd
+
+
 @jax.custom_vjp
 def _symmetric_step(system: Snakeboard, h: Array, state: SnakeboardKernelState, c0: Array, c1: Array):
     """``system.kernel_step(0.5, h, "exp", state, c0, c1)`` with a hand-written VJP.
@@ -376,10 +375,10 @@ def _symmetric_step(system: Snakeboard, h: Array, state: SnakeboardKernelState, 
 
 
 def _symmetric_fwd(system, h, state, c0, c1):
-    new, residual, singular, p = system._step_parts(0.5, h, "exp", state, c0, c1)
+    new, residual, singular, b = system._step_parts(0.5, h, "exp", state, c0, c1)
     # the step's right-hand side b = pu + h f / 2 (it reads the controls): the backward rebuilds
     # the rest from it and the carried state with the step's own expressions
-    b_psi, b_phi = saved(p["b_psi"], p["b_phi"])
+    b_psi, b_phi = saved(*b)
     return (new, residual, singular), (system, h, state, c0, c1, b_psi, b_phi)
 
 
@@ -388,20 +387,19 @@ def _symmetric_bwd(res, ct):
     nb = ct[0]
     m, l, inertia, jj = system.m, system.l, system.I, system.J
     ml2 = m * l**2
-    sd, cd = sincos(0.5 * h * (b_phi / (2 * jj)))  # the half turn h u^phi / 2
+    sd, cd = sincos(0.5 * h * (b_phi / (2 * jj)))  # the half turn h u^phi / 2, u^phi = b_phi / 2J
     ck, sk = state.cos_phi, state.sin_phi
     mu0, mu1 = state.mu[0], state.mu[1]
     g = state.pose
     # forward values rebuilt from the saved ones (the same expressions as the step's)
     nu = mu0 * (2 * sk * ck) + mu1 * (-2 * l * ck**2)
-    sa, ca = sk * cd + ck * sd, ck * cd - sk * sd
+    sa, ca = _turned(sk, ck, sd, cd)
     u_psi, cc = system._solve(b_psi, nu, sk, ck, sa, ca)
     xi0 = cc * 2 * sa * ca
     xi1 = -2 * l * ca**2 * cc
     w, v2 = h * xi0, h * xi1
     n2 = m * xi1
-    small = jnp.abs(w) < jnp.finfo(w.dtype).eps ** 0.25
-    ws = jnp.where(small, jnp.ones_like(w), w)
+    small, ws = small_angle(w)
     sw0, cw0 = sincos(ws)  # the exponential map's rotation (its safe stand-in, as the step's)
     big_a, big_b = sw0 / ws, (1.0 - cw0) / ws
     ta = jnp.where(small, 1.0 - w**2 / 6.0 + w**4 / 120.0, big_a)
