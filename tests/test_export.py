@@ -273,13 +273,19 @@ def test_exports_off_inside_traces_and_without_a_cache(exports, monkeypatch):
     assert _export.call("solve", None, (task,), lambda: None) is NotImplemented
 
 
+#: a new process: solves the small parallel_park, then runs a program with a LAPACK call (a custom
+#: call) through an export, then computes the key of the roller racer's gait (an lj.System of
+#: library functions) as this module does; what it traced and lowered is recorded before the two
+#: last steps, which lower their own programs
 NEW_PROCESS = """
 import json, sys
 import jax
 jax.config.update("jax_enable_x64", True)
+import jax.numpy as jnp
 import numpy as np
 import ldap_jax as lj
 from ldap_jax import control as lc
+from ldap_jax.control import _export
 lj.enable_compilation_cache(sys.argv[1])
 traced, lowered = [], []
 def listen(event, duration, **kwargs):
@@ -289,57 +295,71 @@ def listen(event, duration, **kwargs):
         lowered.append(kwargs.get("fun_name"))
 jax.monitoring.register_event_duration_secs_listener(listen)
 sol = lc.solve(lc.parallel_park(integrator=lj.RDP(), n_steps=40))
-print(json.dumps({"params": np.asarray(sol.params).tolist(), "iterations": int(sol.iterations),
-                  "traced": traced, "lowered": lowered, "scipy": "scipy.linalg" in sys.modules}))
+out = {"params": np.asarray(sol.params).tolist(), "iterations": int(sol.iterations),
+       "traced": list(traced), "lowered": list(lowered), "scipy": "scipy.linalg" in sys.modules}
+a = np.array([[4.0, 1.0, 0.0], [1.0, 3.0, 1.0], [0.0, 1.0, 2.0]])
+x = _export.call("lapack_probe", lambda a, b: (jnp.linalg.solve(a, b),), (a, np.ones(3)), lambda: (0,))
+out["lapack_x"] = np.asarray(x[0]).tolist()
+out["lapack_key"] = _export._signature("lapack_probe", (a, np.ones(3)))[0]
+sys.path.insert(0, sys.argv[2])
+from test_export import _key
+out["racer_key"] = _key(lc.racer_gait())
+print(json.dumps(out))
 """
 
 
-def test_a_new_process_solves_from_the_export(tmp_path):
-    """Two new processes on one cache folder (the suite's, so that the XLA programs are compiled
-    once across runs): the second traces neither the run nor the finish, imports no SciPy (JAX's
-    LAPACK set-up is skipped for programs without LAPACK calls), and both give this process's
-    traced solution to 1e-12."""
-    cache = os.environ.get("JAX_COMPILATION_CACHE_DIR") or str(tmp_path)
+@pytest.fixture(scope="module")
+def new_processes(tmp_path_factory):
+    """Three new processes (:data:`NEW_PROCESS`) one after another on one fresh cache folder: the
+    first exports and compiles the programs, the second finds them, and the third runs after
+    the executables the first stored were damaged. Their outputs, the executables stored after
+    the first, and the names of the export folder's files after each."""
+    import pathlib
+
     env = dict(os.environ, LDAP_JAX_EXPORT="1")
-    runs = []
-    for _ in range(2):
-        res = subprocess.run(
-            [sys.executable, "-c", NEW_PROCESS, cache], capture_output=True, text=True, env=env, timeout=900
-        )
+    cache = tmp_path_factory.mktemp("new_processes") / "cache"
+    tests = str(pathlib.Path(__file__).parent)
+    runs, files = [], []
+
+    def run():
+        cmd = [sys.executable, "-c", NEW_PROCESS, str(cache), tests]
+        res = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900)
         assert res.returncode == 0, res.stderr[-3000:]
         runs.append(json.loads(res.stdout.strip().splitlines()[-1]))
+        files.append(sorted(p.name for p in (cache / _export.SUBDIR).iterdir()))
+
+    run()
+    stored = sorted((cache / _export.SUBDIR).glob("*.executable"))
+    run()
+    for path in stored:
+        path.write_bytes(b"damaged")
+    run()
+    return runs, stored, files
+
+
+def test_a_new_process_solves_from_the_export(new_processes):
+    """Two new processes on one cache folder: the second traces neither the run nor the finish,
+    imports no SciPy (JAX's LAPACK set-up is skipped for programs without LAPACK calls), and both
+    give this process's traced solution to 1e-12."""
+    runs, _, _ = new_processes
     second = runs[1]
     names = {"export_run", "export_finish", "_run_one", "_finish"}
     assert not names & set(second["traced"]), second["traced"]
     assert not second["scipy"]
     want = _traced(lc.parallel_park(integrator=lj.RDP(), n_steps=40))
-    for run in runs:
+    for run in runs[:2]:
         assert run["iterations"] == int(want.iterations)
         np.testing.assert_allclose(np.asarray(run["params"]), np.asarray(want.params), rtol=1e-12, atol=1e-12)
 
 
-def test_a_new_process_loads_the_executable_the_first_one_compiled(tmp_path):
+def test_a_new_process_loads_the_executable_the_first_one_compiled(new_processes):
     """On a fresh cache folder the process that compiles the exported programs stores their
     executables next to the exports; a second process loads them without lowering anything, and
     a third, whose executables are damaged, lowers and compiles through JAX's cache as before;
     all three give the traced solution to 1e-12."""
-    env = dict(os.environ, LDAP_JAX_EXPORT="1")
-    cache = tmp_path / "cache"
-
-    def run():
-        cmd = [sys.executable, "-c", NEW_PROCESS, str(cache)]
-        res = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900)
-        assert res.returncode == 0, res.stderr[-3000:]
-        return json.loads(res.stdout.strip().splitlines()[-1])
-
-    runs = [run()]
-    stored = sorted((cache / _export.SUBDIR).glob("*.executable"))
+    runs, stored, _ = new_processes
     assert len(stored) == 2, stored  # the run's and the finish's
-    runs.append(run())
     assert runs[1]["lowered"] == [] and runs[1]["traced"] == []
-    for path in stored:
-        path.write_bytes(b"damaged")
-    runs.append(run())
     assert {"jit(exported_run)", "jit(exported_finish)"} <= set(runs[2]["lowered"])
     want = _traced(lc.parallel_park(integrator=lj.RDP(), n_steps=40))
     for r in runs:
@@ -360,71 +380,32 @@ def test_executables_are_kept_per_host_cpu(monkeypatch):
     assert len({here, there, _export._executable_path("some_key")}) == 3
 
 
-#: a program with a LAPACK call (a custom call) through an export, in a new process
-LAPACK_PROCESS = """
-import json, sys
-import jax
-jax.config.update("jax_enable_x64", True)
-import jax.numpy as jnp
-import numpy as np
-import ldap_jax as lj
-from ldap_jax.control import _export
-lj.enable_compilation_cache(sys.argv[1])
-a = np.array([[4.0, 1.0, 0.0], [1.0, 3.0, 1.0], [0.0, 1.0, 2.0]])
-out = _export.call("lapack_probe", lambda a, b: (jnp.linalg.solve(a, b),), (a, np.ones(3)), lambda: (0,))
-print(json.dumps({"x": np.asarray(out[0]).tolist()}))
-"""
-
-
-def test_a_program_with_custom_calls_is_never_loaded_as_an_executable(tmp_path):
+def test_a_program_with_custom_calls_is_never_loaded_as_an_executable(new_processes):
     """A program calling LAPACK (a custom call, whose kernels JAX registers while lowering) is
     exported but its executable is not stored: a second process lowers it as before (a loaded
-    one crashed at its first call) and both solve the system."""
-    env = dict(os.environ, LDAP_JAX_EXPORT="1")
-    cache = tmp_path / "cache"
-    for _ in range(2):
-        cmd = [sys.executable, "-c", LAPACK_PROCESS, str(cache)]
-        res = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
-        assert res.returncode == 0, res.stderr[-3000:]
-        x = json.loads(res.stdout.strip().splitlines()[-1])["x"]
-        a = np.array([[4.0, 1.0, 0.0], [1.0, 3.0, 1.0], [0.0, 1.0, 2.0]])
-        np.testing.assert_allclose(a @ np.asarray(x), np.ones(3), rtol=0, atol=1e-14)
-        assert list((cache / _export.SUBDIR).glob("*.jaxexport"))
-        assert not list((cache / _export.SUBDIR).glob("*.executable"))
+    one crashed at its first call) and both solve the system (the new processes above, after
+    their solve)."""
+    runs, _, files = new_processes
+    a = np.array([[4.0, 1.0, 0.0], [1.0, 3.0, 1.0], [0.0, 1.0, 2.0]])
+    for r, names in zip(runs[:2], files[:2]):
+        np.testing.assert_allclose(a @ np.asarray(r["lapack_x"]), np.ones(3), rtol=0, atol=1e-14)
+        key = r["lapack_key"]
+        assert key == runs[0]["lapack_key"] and f"{key}.jaxexport" in names, (key, names)
+        assert not [n for n in names if n.startswith(key) and n.endswith(".executable")], names
 
 
-#: prints the key of the roller racer's gait (an lj.System of library functions) in a new process
-RACER_KEY = """
-import jax
-jax.config.update("jax_enable_x64", True)
-import sys
-import threading
-sys.path.insert(0, sys.argv[1])
-from test_export import _key
-from ldap_jax import control as lc
-print(_key(lc.racer_gait()))
-"""
-
-
-def test_library_functions_are_keyed_by_name_user_functions_never():
+def test_library_functions_are_keyed_by_name_user_functions_never(new_processes):
     """A system of the library's own functions (``lj.roller_racer``: nested functions, one
     calling another through its closure) is exported under a key that a new process computes
-    alike (its code is in the library's source hash); its parameter values are arguments, and the
-    racer without friction is another key. A system holding a user-written function, or a library
-    function whose closure holds an array, is never exported."""
-    import pathlib
-
+    alike (its code is in the library's source hash; the new processes above); its parameter
+    values are arguments, and the racer without friction is another key. A system holding a
+    user-written function, or a library function whose closure holds an array, is never
+    exported."""
+    runs, _, _ = new_processes
     key = _key(lc.racer_gait())
     assert key is not None
     assert _key(lc.racer_gait(lj.roller_racer(drag=0.5, m1=2.0))) == key
-    res = subprocess.run(
-        [sys.executable, "-c", RACER_KEY, str(pathlib.Path(__file__).parent)],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    assert res.returncode == 0, res.stderr[-3000:]
-    assert res.stdout.strip().splitlines()[-1] == key
+    assert [r["racer_key"] for r in runs] == [key] * len(runs)
     racer, frictionless = lj.roller_racer(drag=0.3), lj.roller_racer()
     assert _export._signature("run", (frictionless,))[0] != _export._signature("run", (racer,))[0]
 
