@@ -205,42 +205,19 @@ def test_values_are_arguments_and_structures_are_keys(exports):
     assert len(list(exports.glob("*.jaxexport"))) == 2
 
 
-def test_gradients_use_the_exported_run(exports):
-    """d(optimal effort)/d(goal, mass) after a solve that exported its programs: the interior-point
-    run is the exported program, neither traced nor lowered again (its inputs are cut from
-    differentiation, and are passed to it as NumPy arrays: the solution's own params as the guess
-    and the mass made an array under grad lowered it a second time before), the IFT step is
-    traced, and the gradient is the one without exports (to 1e-10)."""
-    task = lc.parallel_park(integrator=lj.RDP(), n_steps=40)
-    sol = lc.solve(task)
-
-    def effort(goal, m):  # as notebook 03: from the solution, at a tighter tolerance
-        return lc.solve(task.with_options(goal=goal, system=lj.Car(m=m)), sol.params, tol=1e-10).cost
-
-    with compiled_programs("trace") as traced, compiled_programs() as compiled:
-        grad = jax.grad(effort, argnums=(0, 1))(task.goal, 1.0)
-    assert "_run_one" not in traced and "export_run" not in traced, traced
-    assert "jit(exported_run)" not in compiled, compiled
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("LDAP_JAX_EXPORT", "0")
-        want = jax.grad(effort, argnums=(0, 1))(task.goal, 1.0)
-    for a, b in zip(grad, want):
-        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-10, atol=1e-12)
-    # as a new process: the finish and its Jacobian are read back, nothing of the solver traced
-    _export._loaded.clear()
-    with compiled_programs("trace") as traced:
-        again = jax.grad(effort, argnums=(0, 1))(task.goal, 1.0)
-    assert not {"_run_one", "_finish", "export_finish", "export_finish_jacobian"} & set(traced), traced
-    for a, b in zip(again, want):
-        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-10, atol=1e-12)
-
-
 def test_exported_sensitivities_in_forward_and_reverse_mode(exports):
     """Under a top-level grad or jvp the finish runs as its exported program and its exported
     Jacobian with respect to the task's arrays (one program whichever of them are traced): the
     derivatives of the cost and of the optimal controls equal the traced IFT derivatives (to
     1e-10), in reverse and in forward mode; under jacfwd (vmap of jvp) the derivative is traced,
-    with the same values."""
+    with the same values.
+
+    d(optimal effort)/d(goal, mass) after a solve that exported its programs (both tests in one:
+    they compiled the same exports): under grad the interior-point run is the exported program,
+    neither traced nor lowered again (its inputs are cut from differentiation, and are passed to
+    it as NumPy arrays: the solution's own params as the guess and the mass made an array under
+    grad lowered it a second time before), the IFT step is traced, and the gradient is the one
+    without exports (to 1e-10); as in a new process, the finish and its Jacobian are read back."""
     task = lc.parallel_park(integrator=lj.RDP(), n_steps=40)
     sol = lc.solve(task)
 
@@ -258,13 +235,36 @@ def test_exported_sensitivities_in_forward_and_reverse_mode(exports):
         mp.setenv("LDAP_JAX_EXPORT", "0")
         want = {name: run() for name, run in runs.items()}
     for name, run in runs.items():
-        with compiled_programs("trace") as traced:
+        with compiled_programs("trace") as traced, compiled_programs() as compiled:
             got = run()
         assert ("export_finish_jacobian" in traced) == (name == "grad"), (name, traced)
+        if name == "grad":
+            assert "_run_one" not in traced and "export_run" not in traced, traced
+            assert "jit(exported_run)" not in compiled, compiled
         for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want[name])):
             np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-10, atol=1e-12)
     # the grad traced the goal and the mass, the jvp the goal only: one Jacobian program
     assert len(list(exports.glob("*.jaxexport"))) == 3
+
+    def effort(goal, m):  # as notebook 03: from the solution, at a tighter tolerance
+        return lc.solve(task.with_options(goal=goal, system=lj.Car(m=m)), sol.params, tol=1e-10).cost
+
+    with compiled_programs("trace") as traced, compiled_programs() as compiled:
+        grad = jax.grad(effort, argnums=(0, 1))(task.goal, 1.0)  # the mass a Python number
+    assert "_run_one" not in traced and "export_run" not in traced, traced
+    assert "jit(exported_run)" not in compiled, compiled
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("LDAP_JAX_EXPORT", "0")
+        want = jax.grad(effort, argnums=(0, 1))(task.goal, 1.0)
+    for a, b in zip(grad, want):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-10, atol=1e-12)
+    # as a new process: the finish and its Jacobian are read back, nothing of the solver traced
+    _export._loaded.clear()
+    with compiled_programs("trace") as traced:
+        again = jax.grad(effort, argnums=(0, 1))(task.goal, 1.0)
+    assert not {"_run_one", "_finish", "export_finish", "export_finish_jacobian"} & set(traced), traced
+    for a, b in zip(again, want):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-10, atol=1e-12)
 
 
 def test_exports_off_inside_traces_and_without_a_cache(exports, monkeypatch):
