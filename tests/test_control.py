@@ -253,11 +253,16 @@ def test_passive_entries_skip_their_derivatives_without_changing_them():
     _, fns, _, _, lay = _solve.setup(task, "exact")
     assert fns.n_passive > 0
     p, v = to_variables(lay, task.init())
-    key = jax.random.PRNGKey(3)
-    chi = _kkt.rollout(fns, p, v)
-    chi = chi + 1e-3 * jax.random.normal(key, chi.shape)
-    y = jax.random.normal(jax.random.PRNGKey(4), chi.shape)
-    nu = jax.random.normal(jax.random.PRNGKey(5), (jax.eval_shape(fns.terminal, chi[-1]).shape[0],))
+
+    @jax.jit  # the point: one program (op by op, each operation compiled alone)
+    def point(p, v):
+        chi = _kkt.rollout(fns, p, v)
+        chi = chi + 1e-3 * jax.random.normal(jax.random.PRNGKey(3), chi.shape)
+        y = jax.random.normal(jax.random.PRNGKey(4), chi.shape)
+        nu = jax.random.normal(jax.random.PRNGKey(5), (jax.eval_shape(fns.terminal, chi[-1]).shape[0],))
+        return chi, y, nu
+
+    chi, y, nu = point(p, v)
     full = fns._replace(n_passive=0)
     a = jax.jit(lambda: _kkt.derivatives(fns, p, chi, v, y, nu, jnp.inf))()
     b = jax.jit(lambda: _kkt.derivatives(full, p, chi, v, y, nu, jnp.inf))()
