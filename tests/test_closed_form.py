@@ -500,6 +500,32 @@ def _leaves_close(a, b, what):
         np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-12, atol=1e-12 * scale, err_msg=what)
 
 
+def _plain_step(system, h, st, a, b):
+    return system.kernel_step(0.5, h, "exp", st, a, b)[0]
+
+
+def _symmetric(system, h, st, a, b):
+    from ldap_jax.systems._snakeboard import _symmetric_step
+
+    return _symmetric_step(system, h, st, a, b)[0]
+
+
+@eqx.filter_jit  # the model, the steps and the states traced: one program for every h
+def _batched_step(system, hs, state, c0, c1):
+    return jax.vmap(lambda *x: _plain_step(system, *x))(hs, state, c0, c1)
+
+
+@eqx.filter_jit
+def _batched_step_vjp(f, system, hs, state, c0, c1, ct):
+    """``f``'s values and VJP (in the model, the step, the state and both control values) per member."""
+
+    def one(h, st, a, b, ct):
+        out, pull = jax.vjp(f, system, h, st, a, b)
+        return out, pull(ct)
+
+    return jax.vmap(one)(hs, state, c0, c1, ct)
+
+
 @pytest.mark.parametrize("h", [0.01, -0.03, 0.4, 2e-9])
 def test_snakeboard_step_vjp_equals_autodiff(h):
     """The symmetric step's hand-written VJP equals JAX's VJP of the same step, for every input
@@ -507,8 +533,6 @@ def test_snakeboard_step_vjp_equals_autodiff(h):
     ``vmap``; ``h = 2e-9`` puts the rotation ``h xi_1`` in the exponential map's Taylor branch
     (and 0.4 puts the steering angle's rotation well away from small). The values are the
     step's to round-off (the same operations; XLA compiles the two programs apart: 1 ulp)."""
-    from ldap_jax.systems._snakeboard import _symmetric_step
-
     sb = lj.Snakeboard(m=1.3, l=0.45, I=0.06, J=0.025)
     rng = np.random.default_rng(7)
     n = 16
@@ -519,22 +543,9 @@ def test_snakeboard_step_vjp_equals_autodiff(h):
     c0, c1 = jnp.asarray(rng.normal(size=(n, 2))), jnp.asarray(rng.normal(size=(n, 2)))
     hs = jnp.full((n,), h)
 
-    def plain(system, h, st, a, b):
-        return system.kernel_step(0.5, h, "exp", st, a, b)[0]
-
-    def custom(system, h, st, a, b):
-        return _symmetric_step(system, h, st, a, b)[0]
-
-    def vjp(f, ct):
-        def one(h, st, a, b, ct):
-            out, pull = jax.vjp(f, sb, h, st, a, b)
-            return out, pull(ct)
-
-        return jax.jit(jax.vmap(one))(hs, state, c0, c1, ct)
-
-    out = jax.jit(jax.vmap(lambda *x: plain(sb, *x)))(hs, state, c0, c1)
+    out = _batched_step(sb, hs, state, c0, c1)
     ct = jax.tree_util.tree_map(lambda x: jnp.asarray(rng.normal(size=x.shape)), out)
-    (o1, g1), (o2, g2) = vjp(plain, ct), vjp(custom, ct)
+    (o1, g1), (o2, g2) = (_batched_step_vjp(f, sb, hs, state, c0, c1, ct) for f in (_plain_step, _symmetric))
     for x, y in zip(jax.tree_util.tree_leaves(o1), jax.tree_util.tree_leaves(o2)):
         np.testing.assert_allclose(x, y, rtol=1e-15, atol=1e-15)
     _leaves_close(g2, g1, f"h={h}")
@@ -564,14 +575,12 @@ def test_snakeboard_rollout_gradient_with_the_hand_written_vjp():
     sampler and its VJP), and its gradients in the model parameters, initial states, controls
     and ``t_final`` equal those of JAX's own derivative of the step (to 1e-12), for random
     maneuvers and, with a member that fails (``singular``) left out by a double ``where``, for
-    the healthy members (finite); a loss that reads the failed member gets NaN in both."""
+    the healthy members (finite); a loss that reads the failed member gets NaN in both. (Five
+    random maneuvers, the batch size of the runs with the failing members: the same programs.)"""
     sb = lj.Snakeboard()
     ad = _AutodiffSnakeboard()
-    q0, qdot0, ctl = maneuvers(sb, 3, seed=11)
-    fq0, fqdot0, fctl = FAILURE_BATCH
-    batch = jax.tree_util.tree_map(
-        lambda a, b: jnp.concatenate([a, b]), (q0, qdot0, ctl), (fq0, fqdot0, fctl)
-    )
+    q0, qdot0, ctl = maneuvers(sb, 5, seed=11)
+    batch = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a[:3], b]), (q0, qdot0, ctl), FAILURE_BATCH)
     # the step's hand-written VJP is what the rollout runs (and the reference does not)
     jaxpr = str(jax.make_jaxpr(lambda c: _snakeboard_losses(sb, q0, qdot0, c, 4.0, False))(ctl))
     assert "_symmetric_step" in jaxpr and "_sinusoid_term" not in jaxpr

@@ -3,7 +3,12 @@
 Positions and node velocities: for RDP the velocities are read from the carried momenta (the
 inverse of the reduced Legendre transform), second-order accurate at alpha = 1/2 and at least
 first order otherwise; for RK they are the state's.
+
+The runs are made without diagnostics (``simulate(..., diagnostics=False)``: positions, velocities
+and the result only), which nothing here reads: a smaller program to compile per integrator.
 """
+
+import functools
 
 import numpy as np
 import pytest
@@ -11,14 +16,25 @@ from helpers import (
     CONV_GRID,
     CONV_NS,
     CONV_T,
+    INTEGRATORS,
     convergence_case,
-    convergence_runs,
     fitted_order,
     integrators,
+    simulate_ns,
     systems,
 )
 
 SYSTEMS = systems()
+
+
+@functools.cache
+def convergence_runs(sys_name: str, int_name: str):
+    """helpers.convergence_runs without the diagnostics: the runs of ``INTEGRATORS[int_name]`` at
+    the step counts of its order, one program per system and integrator (test_dla_gni reruns the
+    RDP one)."""
+    integrator, order = INTEGRATORS[int_name]
+    man, _ = convergence_case(sys_name)
+    return simulate_ns(SYSTEMS[sys_name], integrator, man, CONV_T, CONV_NS[min(order, 4)], diagnostics=False)
 
 
 def errors(sys_name, int_name, order):

@@ -66,7 +66,8 @@ def test_dla_agrees_with_rdp_at_midpoint():
     man, ref = convergence_case("snakeboard")
     sb = SYSTEMS["snakeboard"]
     q_dla = convergence_runs("snakeboard", "dla")[160].q
-    q_rdp = convergence_runs("snakeboard", "rdp_exp")[160].q
+    # the program of test_convergence's RDP runs (without diagnostics): not compiled again
+    q_rdp = simulate_ns(sb, INTEGRATORS["rdp_exp"][0], man, CONV_T, NS, diagnostics=False)[160].q
     # the explicit (alpha = 0) predictor finds the same root as the Euler-type guess
     q_pred = simulate_batch(sb, lj.DLA(initial_guess="explicit"), man, CONV_T, 160).q
     np.testing.assert_allclose(q_pred, q_dla, rtol=0, atol=1e-11)
@@ -105,7 +106,10 @@ def test_dla_gradient_matches_finite_differences(sys_name):
 
     def final_x(scale):
         c = eqx.tree_at(lambda c: c.amplitude, ctl, ctl.amplitude * scale)
-        return lj.simulate(system, q0, qdot0, c, t_final=CONV_T, n_steps=40, integrator=lj.DLA()).q[-1, 0]
+        traj = lj.simulate(
+            system, q0, qdot0, c, t_final=CONV_T, n_steps=40, integrator=lj.DLA(), diagnostics=False
+        )
+        return traj.q[-1, 0]
 
     value_and_grad = jax.jit(jax.value_and_grad(final_x))
     one = jnp.asarray(1.0)

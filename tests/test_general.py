@@ -13,7 +13,6 @@ from helpers import (
     maneuvers,
     reference_batch,
     simulate_ns,
-    simulate_over_alphas,
     sleigh_batch,
     sleigh_newton_run,
     systems,
@@ -102,6 +101,20 @@ def test_derived_continuous_equations_equal_hand_written(name):
         np.testing.assert_allclose(qd_user, qd_model, atol=1e-12)
 
 
+@eqx.filter_jit
+def _over_alphas(system, batch, alphas, retraction):
+    """helpers.simulate_over_alphas (alpha traced: one program for the three values) over 20 s in
+    1000 steps, without the diagnostics the comparison does not read."""
+
+    def one(alpha, q0, qdot0, ctl):
+        integrator = RDP(alpha=alpha, retraction=retraction)
+        return lj.simulate(
+            system, q0, qdot0, ctl, t_final=20.0, n_steps=1000, integrator=integrator, diagnostics=False
+        )
+
+    return jax.vmap(lambda a: jax.vmap(lambda q, qd, c: one(a, q, qd, c))(*batch))(alphas)
+
+
 @pytest.mark.parametrize("retraction", ["exp", "cayley"])
 @pytest.mark.parametrize("name", list(SYSTEMS))
 def test_general_step_on_user_description_equals_closed_form(name, retraction):
@@ -110,10 +123,11 @@ def test_general_step_on_user_description_equals_closed_form(name, retraction):
     model = SYSTEMS[name]
     batch = maneuvers(model, 1, seed=31)
     alphas = (0.0, 0.5, 1.0)
-    closed = simulate_over_alphas(model, batch, alphas, 20.0, 1000, retraction=retraction)
-    general = simulate_over_alphas(USER[name], batch, alphas, 20.0, 1000, retraction=retraction)
+    closed = _over_alphas(model, batch, jnp.asarray(alphas), retraction)
+    general = _over_alphas(USER[name], batch, jnp.asarray(alphas), retraction)
     assert RDP().uses_kernel(model) and not RDP().uses_kernel(USER[name])
-    for alpha, c, g in zip(alphas, closed, general):
+    for i, alpha in enumerate(alphas):
+        c, g = index(closed, i), index(general, i)
         assert not bool(np.any(np.asarray(c.failed))) and not bool(np.any(np.asarray(g.failed))), alpha
         assert bool(np.all(np.asarray(g.converged)))
         np.testing.assert_allclose(g.q, c.q, rtol=0, atol=1e-10, err_msg=str(alpha))
@@ -139,7 +153,7 @@ def test_sign_of_the_connection_term():
     ref_q = np.asarray(ref.q)
     errs = {}
     for label, integ in (("(23)", RDP()), ("(25) printed", PrintedSign(solver="newton"))):
-        runs = simulate_ns(car, integ, batch, 4.0, (100, 200))
+        runs = simulate_ns(car, integ, batch, 4.0, (100, 200), diagnostics=False)  # q alone is read
         errs[label] = [float(np.linalg.norm(runs[n].q[0, -1, :3] - ref_q[-1, :3])) for n in (100, 200)]
     print(errs)
     assert fitted_order([1, 0.5], errs["(23)"]) > 1.9
@@ -201,7 +215,7 @@ def test_new_systems_converge_with_order_two(case):
         variants.insert(1, (RDP(retraction="cayley", dtau_order=None), 2))
     ns = (40, 80, 160)
     for integrator, order in variants:
-        runs = simulate_ns(system, integrator, batch, t_final, ns)
+        runs = simulate_ns(system, integrator, batch, t_final, ns, diagnostics=False)  # q alone is read
         errs = []
         for n in ns:
             assert not bool(np.any(runs[n].failed))
@@ -239,7 +253,9 @@ def test_gradient_through_general_implicit_step():
 
     def loss(amp):
         c = lj.Sinusoids(amplitude=amp, frequency=ctl.frequency, phase=ctl.phase)
-        traj = lj.simulate(racer, q0, qdot0, c, t_final=3.0, n_steps=150, integrator=RDP(dtau_order=None))
+        traj = lj.simulate(
+            racer, q0, qdot0, c, t_final=3.0, n_steps=150, integrator=RDP(dtau_order=None), diagnostics=False
+        )
         return jnp.sum(traj.q[-1, :3] ** 2)
 
     value_and_grad = jax.jit(jax.value_and_grad(loss))
@@ -262,7 +278,7 @@ def test_vmap_over_64_maneuvers_equals_loop_for_user_system():
     ctl = lj.Sinusoids(amplitude=amps, frequency=jnp.full((64, 1, 1), 2.0), phase=jnp.zeros((64, 1, 1)))
     q0 = jnp.zeros(4)
     qdot0 = jnp.zeros(4)
-    run = jax.jit(lambda c: lj.simulate(RACER, q0, qdot0, c, t_final=2.0, n_steps=50).q)
+    run = jax.jit(lambda c: lj.simulate(RACER, q0, qdot0, c, t_final=2.0, n_steps=50, diagnostics=False).q)
     batched = np.asarray(jax.vmap(run)(ctl))
     for i in range(0, 64, 7):
         np.testing.assert_allclose(batched[i], run(index(ctl, i)), rtol=1e-12, atol=1e-13)

@@ -178,7 +178,8 @@ def test_composition_orders(name, order, retraction):
 
 def test_triple_jump_and_mclachlan_reach_order_4_on_smooth_controls():
     system = SYSTEMS["snakeboard"]
-    batch = maneuvers(system, 2, seed=14)
+    # three maneuvers, as test_composition_orders: its program of the reference solutions is reused
+    batch = maneuvers(system, 3, seed=14)
     for scheme in ("triple_jump", "mclachlan5"):
         errs = _terminal_errors(system, lj.RDP(order=4, scheme=scheme), batch, 2.0, (16, 32, 64))
         assert abs(fitted_order([1 / 8, 1 / 16, 1 / 32], errs) - 4) < 0.3, (scheme, errs)
@@ -294,7 +295,17 @@ def test_gradient_through_order_6_matches_central_differences():
     @jax.jit
     def loss(amplitude):
         c = lj.Sinusoids(amplitude, ctl.frequency, ctl.phase)
-        q = lj.simulate(sb, q0, qdot0, c, t_final=3.0, n_steps=30, integrator=lj.RDP(order=6), save="final").q
+        q = lj.simulate(
+            sb,
+            q0,
+            qdot0,
+            c,
+            t_final=3.0,
+            n_steps=30,
+            integrator=lj.RDP(order=6),
+            save="final",
+            diagnostics=False,
+        ).q
         return jnp.sum((q[-1, :3] - jnp.array([0.5, -0.3, 1.0])) ** 2)
 
     x = ctl.amplitude
@@ -313,8 +324,10 @@ def test_gradient_through_order_6_matches_central_differences():
 def test_vmap_equals_loop_and_float32_keeps_float32():
     sb = SYSTEMS["snakeboard"]
     batch = maneuvers(sb, 4, seed=18)
-    run = jax.jit(
-        lambda a, b, c: lj.simulate(sb, a, b, c, t_final=2.0, n_steps=20, integrator=lj.RDP(order=6)).q
+    run = jax.jit(  # q alone is read: no diagnostics
+        lambda a, b, c: (
+            lj.simulate(sb, a, b, c, t_final=2.0, n_steps=20, integrator=lj.RDP(order=6), diagnostics=False).q
+        )
     )
     batched = np.asarray(jax.vmap(run)(*batch))
     for i in range(4):
