@@ -296,19 +296,24 @@ def simulate_ns(system, integrator, batch, t_final, ns, **options) -> dict[int, 
 
 
 @eqx.filter_jit
-def _simulate_over_alphas(system, batch, alphas, t_final, n_steps, rdp_options):
+def _simulate_over_alphas(system, batch, alphas, t_final, n_steps, rdp_options, simulate_options):
     def one(alpha, q0, qdot0, ctl):
         integrator = lj.RDP(alpha=alpha, **dict(rdp_options))
-        return lj.simulate(system, q0, qdot0, ctl, t_final=t_final, n_steps=n_steps, integrator=integrator)
+        options = dict(simulate_options, t_final=t_final, n_steps=n_steps, integrator=integrator)
+        return lj.simulate(system, q0, qdot0, ctl, **options)
 
     return jax.vmap(lambda a: jax.vmap(lambda q, qd, c: one(a, q, qd, c))(*batch))(alphas)
 
 
-def simulate_over_alphas(system, batch, alphas, t_final, n_steps, **rdp_options) -> list[lj.Trajectory]:
+def simulate_over_alphas(
+    system, batch, alphas, t_final, n_steps, simulate_options=None, **rdp_options
+) -> list[lj.Trajectory]:
     """``lj.RDP(alpha, **rdp_options)`` on a batch for every alpha in ``alphas``, in one program:
     alpha is traced (one value per member), so the three values of a comparison over alpha share
     one compilation. A closed-form kernel then runs its general branch (no special case for a
-    Python float alpha in {0, 1}). Returns one batched trajectory per alpha."""
+    Python float alpha in {0, 1}). ``simulate_options``: more arguments of ``lj.simulate`` (e.g.
+    ``{"diagnostics": False}``: a smaller program when nothing reads them). Returns one batched
+    trajectory per alpha."""
     dtype = batch[0].dtype
     out = _simulate_over_alphas(
         system,
@@ -317,6 +322,7 @@ def simulate_over_alphas(system, batch, alphas, t_final, n_steps, **rdp_options)
         jnp.asarray(t_final, dtype),
         int(n_steps),
         tuple(sorted(rdp_options.items())),
+        tuple(sorted((simulate_options or {}).items())),
     )
     return [index(out, i) for i in range(len(alphas))]
 
@@ -352,11 +358,14 @@ def convergence_case(sys_name: str):
 
 
 @functools.cache
-def convergence_runs(sys_name: str, int_name: str) -> dict[int, Run]:
-    """The runs of ``INTEGRATORS[int_name]`` at the step counts of its order (``CONV_NS``)."""
+def convergence_runs(sys_name: str, int_name: str, diagnostics: bool = True) -> dict[int, Run]:
+    """The runs of ``INTEGRATORS[int_name]`` at the step counts of its order (``CONV_NS``), one
+    program per system, integrator and ``diagnostics`` (without them: positions, velocities and
+    the result only, a smaller program)."""
     integrator, order = INTEGRATORS[int_name]
     man, _ = convergence_case(sys_name)
-    return simulate_ns(SYSTEMS[sys_name], integrator, man, CONV_T, CONV_NS[min(order, 4)])
+    ns = CONV_NS[min(order, 4)]
+    return simulate_ns(SYSTEMS[sys_name], integrator, man, CONV_T, ns, diagnostics=diagnostics)
 
 
 def on_grid(run: Run, n: int, grid: int = CONV_GRID) -> Run:

@@ -8,39 +8,26 @@ The runs are made without diagnostics (``simulate(..., diagnostics=False)``: pos
 and the result only), which nothing here reads: a smaller program to compile per integrator.
 """
 
-import functools
-
 import numpy as np
 import pytest
 from helpers import (
     CONV_GRID,
     CONV_NS,
     CONV_T,
-    INTEGRATORS,
     convergence_case,
+    convergence_runs,
     fitted_order,
     integrators,
-    simulate_ns,
     systems,
 )
 
 SYSTEMS = systems()
 
 
-@functools.cache
-def convergence_runs(sys_name: str, int_name: str):
-    """helpers.convergence_runs without the diagnostics: the runs of ``INTEGRATORS[int_name]`` at
-    the step counts of its order, one program per system and integrator (test_dla_gni reruns the
-    RDP one)."""
-    integrator, order = INTEGRATORS[int_name]
-    man, _ = convergence_case(sys_name)
-    return simulate_ns(SYSTEMS[sys_name], integrator, man, CONV_T, CONV_NS[min(order, 4)], diagnostics=False)
-
-
 def errors(sys_name, int_name, order):
     """Max position (x, y, theta) and velocity errors over the batch and the grid, per N."""
     _, ref = convergence_case(sys_name)
-    runs = convergence_runs(sys_name, int_name)
+    runs = convergence_runs(sys_name, int_name, diagnostics=False)
     ns = CONV_NS[min(order, 4)]
     grid = ns[0]  # compare on the nodes of the coarsest run
     sub = CONV_GRID // grid

@@ -66,8 +66,8 @@ def test_dla_agrees_with_rdp_at_midpoint():
     man, ref = convergence_case("snakeboard")
     sb = SYSTEMS["snakeboard"]
     q_dla = convergence_runs("snakeboard", "dla")[160].q
-    # the program of test_convergence's RDP runs (without diagnostics): not compiled again
-    q_rdp = simulate_ns(sb, INTEGRATORS["rdp_exp"][0], man, CONV_T, NS, diagnostics=False)[160].q
+    # test_convergence's RDP runs (without diagnostics): not computed again
+    q_rdp = convergence_runs("snakeboard", "rdp_exp", diagnostics=False)[160].q
     # the explicit (alpha = 0) predictor finds the same root as the Euler-type guess
     q_pred = simulate_batch(sb, lj.DLA(initial_guess="explicit"), man, CONV_T, 160).q
     np.testing.assert_allclose(q_pred, q_dla, rtol=0, atol=1e-11)

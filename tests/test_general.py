@@ -13,6 +13,7 @@ from helpers import (
     maneuvers,
     reference_batch,
     simulate_ns,
+    simulate_over_alphas,
     sleigh_batch,
     sleigh_newton_run,
     systems,
@@ -101,20 +102,6 @@ def test_derived_continuous_equations_equal_hand_written(name):
         np.testing.assert_allclose(qd_user, qd_model, atol=1e-12)
 
 
-@eqx.filter_jit
-def _over_alphas(system, batch, alphas, retraction):
-    """helpers.simulate_over_alphas (alpha traced: one program for the three values) over 20 s in
-    1000 steps, without the diagnostics the comparison does not read."""
-
-    def one(alpha, q0, qdot0, ctl):
-        integrator = RDP(alpha=alpha, retraction=retraction)
-        return lj.simulate(
-            system, q0, qdot0, ctl, t_final=20.0, n_steps=1000, integrator=integrator, diagnostics=False
-        )
-
-    return jax.vmap(lambda a: jax.vmap(lambda q, qd, c: one(a, q, qd, c))(*batch))(alphas)
-
-
 @pytest.mark.parametrize("retraction", ["exp", "cayley"])
 @pytest.mark.parametrize("name", list(SYSTEMS))
 def test_general_step_on_user_description_equals_closed_form(name, retraction):
@@ -123,11 +110,12 @@ def test_general_step_on_user_description_equals_closed_form(name, retraction):
     model = SYSTEMS[name]
     batch = maneuvers(model, 1, seed=31)
     alphas = (0.0, 0.5, 1.0)
-    closed = _over_alphas(model, batch, jnp.asarray(alphas), retraction)
-    general = _over_alphas(USER[name], batch, jnp.asarray(alphas), retraction)
+    # without the diagnostics the comparison does not read: a smaller program
+    quiet = {"diagnostics": False}
+    closed = simulate_over_alphas(model, batch, alphas, 20.0, 1000, quiet, retraction=retraction)
+    general = simulate_over_alphas(USER[name], batch, alphas, 20.0, 1000, quiet, retraction=retraction)
     assert RDP().uses_kernel(model) and not RDP().uses_kernel(USER[name])
-    for i, alpha in enumerate(alphas):
-        c, g = index(closed, i), index(general, i)
+    for alpha, c, g in zip(alphas, closed, general):
         assert not bool(np.any(np.asarray(c.failed))) and not bool(np.any(np.asarray(g.failed))), alpha
         assert bool(np.all(np.asarray(g.converged)))
         np.testing.assert_allclose(g.q, c.q, rtol=0, atol=1e-10, err_msg=str(alpha))
