@@ -475,8 +475,14 @@ def _one_core(cfg: Config, log) -> list[dict]:
     out = os.path.join(tempfile.mkdtemp(prefix="ldap_jax_bench_"), "one_core.json")
     cmd = [sys.executable, os.path.abspath(__file__), "--one-core", out, "--rounds", str(cfg.rounds)]
     cmd += ["--quick"] if cfg.quick else []
+    # without this process's one-device-per-core flag (lj.use_cpu_cores above): the pinned process
+    # runs JAX with its one host device, as a user's has it (inheriting the flag, its one-device
+    # program ran 2x as long on the pinned core)
+    count = "--xla_force_host_platform_device_count"
+    flags = [f for f in os.environ.get("XLA_FLAGS", "").split() if not f.startswith(count)]
+    env = dict(os.environ, XLA_FLAGS=" ".join(flags))
     log(f"  one core: a process pinned to core {core}")
-    subprocess.run(cmd, check=True)
+    subprocess.run(cmd, check=True, env=env)
     with open(out) as f:
         return json.load(f)
 
