@@ -365,6 +365,7 @@ def gait(name: str, cfg: Config, log, cycles: int = 10) -> dict:
     if name == "racer_gait":  # no CasADi model of the racer with friction
         return {"ours": row}
     try:
+        import casadi  # noqa: F401  (casadi_gaits imports it only when a gait is built)
         import casadi_gaits as cg
     except ImportError:
         log("  CasADi is not installed (pip install .[bench]): skipped")
