@@ -4,6 +4,8 @@
     python scripts/first_solve.py --runs 3        # three warm processes
     python scripts/first_solve.py --cache DIR --runs 0   # one process on the cache DIR
     python scripts/first_solve.py --no-export     # the compilation cache only (no exported programs)
+    python scripts/first_solve.py --no-cache --runs 2   # three processes without a cache (as a
+                                                        # user who never enables it)
     python scripts/first_solve.py --program       # the run program alone: XLA's time, its size
     python scripts/first_solve.py --program --quick   # ... compiled as the quick tier's program
 
@@ -29,7 +31,8 @@ counts (``--hlo`` writes its text) and the run's time (the least of 7 calls); ``
 the program a new export's first calls run (the quick tier's options on top), ``--outputs FILE``
 writes the run's outputs (to compare two compilations' answers).
 
-With ``--no-export`` the child sets ``LDAP_JAX_EXPORT=0`` (``lc.solve`` then never uses an
+With ``--no-cache`` the children never enable the cache (every process is cold; the exports are
+kept in memory). With ``--no-export`` the child sets ``LDAP_JAX_EXPORT=0`` (``lc.solve`` then never uses an
 exported program). Prints a table; ``--json FILE`` writes the numbers. The children inherit the
 environment: with ``PYTHONDONTWRITEBYTECODE=1`` every module a warm solve imports first (jaxlib's
 MLIR dialects, for lowering the exported programs) is compiled from source in each process (about
@@ -66,7 +69,8 @@ def child(cache: str) -> dict:
     from ldap_jax import control as lc
 
     t_import = time.perf_counter() - t0
-    lj.enable_compilation_cache(cache)
+    if cache:
+        lj.enable_compilation_cache(cache)
 
     per_program: dict = collections.defaultdict(lambda: collections.defaultdict(float))
 
@@ -205,6 +209,7 @@ def main() -> None:
     p.add_argument("--cache", default=None, help="compilation cache directory (default: a new temporary one)")
     p.add_argument("--runs", type=int, default=1, help="processes after the first one")
     p.add_argument("--no-export", action="store_true", help="do not use exported solver programs")
+    p.add_argument("--no-cache", action="store_true", help="the children never enable the compilation cache")
     p.add_argument("--top", type=int, default=8, help="programs listed per process")
     p.add_argument("--json", default=None, help="write the measurements to this file")
     p.add_argument("--program", action="store_true", help="time and count the run program alone")
@@ -220,11 +225,11 @@ def main() -> None:
         print(json.dumps(child(args.cache)))
         return
     with tempfile.TemporaryDirectory(prefix="ldap_jax_first_solve_") as tmp:
-        cache = args.cache or tmp
+        cache = "" if args.no_cache else args.cache or tmp
         results = {}
         for i in range(args.runs + 1):
-            cold = not os.path.isdir(cache) or not os.listdir(cache)
-            label = "cold" if cold else f"warm {i}"
+            cold = not cache or not os.path.isdir(cache) or not os.listdir(cache)
+            label = f"no cache {i}" if not cache else "cold" if cold else f"warm {i}"
             results[label] = r = run_child(cache, not args.no_export)
             report(label, r, args.top)
     if args.json:

@@ -28,7 +28,7 @@ pytestmark = pytest.mark.xdist_group("parallel_park_40")
 def exports(tmp_path, monkeypatch):
     """Exports on, in an empty folder of their own, with nothing loaded in this process."""
     monkeypatch.setenv("LDAP_JAX_EXPORT", "1")
-    # exports apply only with the persistent cache on; tests/conftest.py turns it on for the suite
+    # exports are stored with the persistent cache on; tests/conftest.py turns it on for the suite
     assert jax.config.jax_compilation_cache_dir, "the suite runs with the persistent cache on"
     monkeypatch.setattr(_export, "export_dir", lambda: tmp_path)
     monkeypatch.setattr(_export, "_loaded", {})
@@ -270,13 +270,22 @@ def test_exported_sensitivities_in_forward_and_reverse_mode(exports):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-10, atol=1e-12)
 
 
-def test_exports_off_inside_traces_and_without_a_cache(exports, monkeypatch):
-    """Under a user's jit the solver is traced as written (no export is read or written); with
-    LDAP_JAX_EXPORT=0 or no cache directory, call declines."""
+def test_exports_off_inside_traces_in_memory_without_a_cache(exports, monkeypatch):
+    """Under a user's jit the solver is traced as written (no export is read or written); without
+    a cache directory a solve runs an export kept in memory (nothing written, the traced
+    program's solution); with LDAP_JAX_EXPORT=0, call declines."""
     task = lc.parallel_park(integrator=lj.RDP(), n_steps=40)
+    reference = _traced(task)
     cost = jax.jit(lambda g: lc.solve(task.with_options(goal=g)).cost)(task.goal)
     assert not list(exports.iterdir())
-    np.testing.assert_allclose(float(cost), float(_traced(task).cost), rtol=1e-12)
+    np.testing.assert_allclose(float(cost), float(reference.cost), rtol=1e-12)
+    with monkeypatch.context() as mp:
+        mp.setattr(_export, "export_dir", lambda: None)
+        assert _export.enabled() and _export._paths("any") is None and _export._executable_path("any") is None
+        _assert_same(lc.solve(task), reference)
+        # served by in-memory exports of the run and the finish
+        assert len([r for r in _export._loaded.values() if r is not None]) == 2
+    assert not list(exports.iterdir())
     monkeypatch.setenv("LDAP_JAX_EXPORT", "0")
     assert not _export.enabled()
     assert _export.call("solve", None, (task,), lambda: None) is NotImplemented

@@ -33,8 +33,9 @@ task's arrays; otherwise (``jacfwd``, ``hessian``, under ``vmap``) its
 derivative is traced.
 
 The exports live in the persistent compilation cache's directory (``jax_compilation_cache_dir``,
-set by :func:`ldap_jax.enable_compilation_cache`), under ``ldap_jax_exports/``; without a cache
-directory nothing is exported. ``LDAP_JAX_EXPORT=0`` turns exports off.
+set by :func:`ldap_jax.enable_compilation_cache`), under ``ldap_jax_exports/``. Without a cache
+directory they are kept in memory only: the process's first solve still gets the quick first
+compilation (:func:`prepare`), and nothing is written. ``LDAP_JAX_EXPORT=0`` turns exports off.
 
 The process that compiles an exported program also stores its executable there (keyed by the
 export's key and the machine's backend, see :func:`_executable`): a later process loads it
@@ -76,11 +77,9 @@ _keys: dict[Any, str | bool] = {}  # in-process: a call's structures -> its key 
 
 
 def enabled() -> bool:
-    """Whether exports are on: a persistent compilation cache directory is set and
-    ``LDAP_JAX_EXPORT`` is not ``0``."""
-    if os.environ.get("LDAP_JAX_EXPORT", "1").strip() in ("0", "false", "False"):
-        return False
-    return bool(jax.config.jax_compilation_cache_dir)
+    """Whether exports are on (``LDAP_JAX_EXPORT`` is not ``0``): stored in the persistent
+    compilation cache's directory when one is set (:func:`export_dir`), in memory otherwise."""
+    return os.environ.get("LDAP_JAX_EXPORT", "1").strip() not in ("0", "false", "False")
 
 
 def export_dir() -> pathlib.Path | None:
@@ -220,8 +219,11 @@ def _key(name, leaves, treedef, static_leaves, static_def) -> str | bool:
     return hashlib.sha256(text.encode()).hexdigest()[:32]
 
 
-def _paths(key: str) -> tuple[pathlib.Path, pathlib.Path]:
+def _paths(key: str) -> tuple[pathlib.Path, pathlib.Path] | None:
+    """The files of the export ``key``, or ``None`` without a cache directory (kept in memory)."""
     folder = export_dir()
+    if folder is None:
+        return None
     return folder / f"{key}.jaxexport", folder / f"{key}.json"
 
 
@@ -483,10 +485,11 @@ def _out_structure(out_template: Callable[[], Any]):
 def _load_or_export(name, key, fun, leaves, static, treedef, out_template, quick=False) -> Callable | None:
     from jax import export as jex
 
-    program_path, meta_path = _paths(key)
+    paths = _paths(key)
     out_def = _out_structure(out_template)
     exported, lapack, custom = None, True, True
-    if program_path.exists() and meta_path.exists():
+    if paths is not None and paths[0].exists() and paths[1].exists():
+        program_path, meta_path = paths
         try:
             meta = json.loads(meta_path.read_text())
             candidate = jex.deserialize(bytearray(program_path.read_bytes()))
@@ -522,6 +525,9 @@ def _load_or_export(name, key, fun, leaves, static, treedef, out_template, quick
             _warn_not_exported(err)
             return None
         runner = _runner(name, key, exported, leaves, out_def, lapack, custom, lowered, quick)
+        if paths is None:  # no cache directory: the export is this process's only
+            return runner
+        program_path, meta_path = paths
         try:  # written while XLA compiles the program (another thread)
             _write(program_path, bytes(exported.serialize()))
             meta = {"out": _describe(out_def, strict=False), "lapack": lapack, "custom_calls": custom}
@@ -740,7 +746,10 @@ def _checked_first_call(loaded, compiled, path: pathlib.Path, lapack: bool) -> C
 
 
 def _executable_path(key: str) -> pathlib.Path | None:
-    """Where the executable of the export ``key`` for this machine's backend is kept."""
+    """Where the executable of the export ``key`` for this machine's backend is kept (``None``:
+    nowhere, without a cache directory)."""
+    if export_dir() is None:
+        return None
     try:
         devices = jax.devices()
         backend = devices[0].client
