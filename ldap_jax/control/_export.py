@@ -362,9 +362,10 @@ def differentiated(
     The derivative is first order: the Jacobian is a constant of the contraction. Under a second
     differentiation (``jax.hessian``), ``jacfwd`` (``vmap`` of ``jvp``), a ``vmap`` or a staging
     trace, with a traced leaf that is not such an array, or above :data:`MAX_COLUMNS`, it
-    declines and ``fun``'s derivative is traced as written.
+    declines and ``fun``'s derivative is traced as written. It declines too without a cache
+    directory: the Jacobian program pays for itself across processes, not within one.
     """
-    if not enabled():
+    if not enabled() or export_dir() is None:
         return NotImplemented
     try:
         from jax._src import core
