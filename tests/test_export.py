@@ -282,6 +282,7 @@ def test_exports_off_inside_traces_in_memory_without_a_cache(exports, monkeypatc
     with monkeypatch.context() as mp:
         mp.setattr(_export, "export_dir", lambda: None)
         assert _export.enabled() and _export._paths("any") is None and _export._executable_path("any") is None
+        assert _export._serves("run") and not _export._serves("gait_tracker")
         _assert_same(lc.solve(task), reference)
         # served by in-memory exports of the run and the finish
         assert len([r for r in _export._loaded.values() if r is not None]) == 2

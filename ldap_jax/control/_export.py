@@ -34,8 +34,9 @@ derivative is traced.
 
 The exports live in the persistent compilation cache's directory (``jax_compilation_cache_dir``,
 set by :func:`ldap_jax.enable_compilation_cache`), under ``ldap_jax_exports/``. Without a cache
-directory they are kept in memory only: the process's first solve still gets the quick first
-compilation (:func:`prepare`), and nothing is written. ``LDAP_JAX_EXPORT=0`` turns exports off.
+directory the solver's programs are exported in memory only (:data:`IN_MEMORY`): the process's
+first solve still gets the quick first compilation (:func:`prepare`), and nothing is written.
+``LDAP_JAX_EXPORT=0`` turns exports off.
 
 The process that compiles an exported program also stores its executable there (keyed by the
 export's key and the machine's backend, see :func:`_executable`): a later process loads it
@@ -78,8 +79,20 @@ _keys: dict[Any, str | bool] = {}  # in-process: a call's structures -> its key 
 
 def enabled() -> bool:
     """Whether exports are on (``LDAP_JAX_EXPORT`` is not ``0``): stored in the persistent
-    compilation cache's directory when one is set (:func:`export_dir`), in memory otherwise."""
+    compilation cache's directory when one is set (:func:`export_dir`), in memory otherwise
+    (the solver's programs only, :data:`IN_MEMORY`)."""
     return os.environ.get("LDAP_JAX_EXPORT", "1").strip() not in ("0", "false", "False")
+
+
+#: the programs exported without a cache directory (kept in memory): ``lc.solve``'s, whose first
+#: solve in a process compiles its run quickly and the finish meanwhile (:func:`prepare`); the
+#: others' exports pay for themselves across processes only
+IN_MEMORY = ("run", "run_batch", "finish")
+
+
+def _serves(name: str) -> bool:
+    """Whether program ``name`` goes through an export here (see :func:`enabled`)."""
+    return enabled() and (export_dir() is not None or name in IN_MEMORY)
 
 
 def export_dir() -> pathlib.Path | None:
@@ -273,7 +286,7 @@ def call(
             ``grad``/``jvp`` or a ``vmap`` they are not batched over (the program then runs on
             them as it is, outside those traces, like the library's :func:`~ldap_jax.jit`).
     """
-    if not enabled():
+    if not _serves(name):
         return NotImplemented
     from .._compilation_cache import _runs_at_top_level, _traced, in_trace
 
@@ -310,7 +323,7 @@ def prepare(
     program runs about 3x slower), which the first calls use, then, in the same thread, with the
     library's options, which later calls use once it is ready and whose executable is the one
     stored for later processes. ``LDAP_JAX_QUICK_FIRST=0`` turns this off."""
-    if not enabled():
+    if not _serves(name):
         return None
     from .._compilation_cache import in_trace
 
