@@ -130,11 +130,12 @@ def solve(
     the same structure (other goal, bounds, model parameters or tolerances) neither traces nor
     compiles them (``LDAP_JAX_EXPORT=0`` turns this off). So are, under a top-level ``jax.grad``
     or ``jax.jvp``, the derivative's: the solution's Jacobian with respect to the task's arrays.
-    The first process to solve a structure compiles its interior-point program quickly first
-    (XLA's LLVM passes off: its first solves run about 3x slower, for the few seconds the
-    optimised program takes to compile behind them in another thread; the solutions agree to
-    1e-13) and stores the optimised one for later processes (``LDAP_JAX_QUICK_FIRST=0``: the
-    optimised program only).
+    A process's first solve (with the cache on, the first process to solve a structure) compiles
+    its interior-point program quickly first (XLA's LLVM passes off: its first solves run about 3x
+    slower, for the few seconds the optimised program takes to compile behind them in another
+    thread; the solutions agree to 1e-13), with or without the cache, and with the cache on stores
+    the optimised one for later processes (``LDAP_JAX_QUICK_FIRST=0``: the optimised program
+    only).
 
     Args:
         task: a task with per-step sampled controls (:class:`SampledControls`).
