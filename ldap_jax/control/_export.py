@@ -378,7 +378,7 @@ def differentiated(
     declines and ``fun``'s derivative is traced as written. It declines too without a cache
     directory: the Jacobian program pays for itself across processes, not within one.
     """
-    if not enabled() or export_dir() is None:
+    if not _serves(name + "_jacobian"):  # not in memory: exported with a cache directory only
         return NotImplemented
     try:
         from jax._src import core
