@@ -97,7 +97,9 @@ def test_a_new_export_runs_its_quick_program_first_then_the_optimised_one(export
     traced program's solution to 1e-12. Only a process's first such program: the next new export
     compiles once. An XLA that rejects the newer of the quick options (``QUICK_NEWER``) compiles
     the quick program without them; one that rejects the quick options compiles the run once,
-    with the library's options, and solves the same."""
+    with the library's options, and solves the same. Without a cache directory (nothing stored)
+    the optimised compilation starts with the run's second call, not after its first."""
+    quick_options, quick_newer = _export.QUICK_OPTIONS, _export.QUICK_NEWER
     calls = []
     original = _export._compile_lowered
     executables = {}
@@ -160,6 +162,27 @@ def test_a_new_export_runs_its_quick_program_first_then_the_optimised_one(export
     _join_background_compilations()
     assert len(calls) == 3 and sum("xla_no_such_option" in c for c in calls) == 1, calls
     _assert_same(third, reference)
+
+    _export._loaded.clear()
+    monkeypatch.setattr(_export, "_quick_spent", [False])
+    monkeypatch.setattr(_export, "QUICK_OPTIONS", quick_options)
+    monkeypatch.setattr(_export, "QUICK_NEWER", quick_newer)
+    monkeypatch.setattr(_export, "export_dir", lambda: None)
+    for path in exports.iterdir():
+        path.unlink()
+    calls.clear()
+    solutions = [lc.solve(task)]
+    _join_background_compilations()
+    # the run's quick program and the finish's: nothing compiles after the answer
+    assert len(calls) == 2 and sum(c.items() >= quick_options.items() for c in calls) == 1, calls
+    solutions.append(lc.solve(task))  # runs the quick program and starts the optimised one
+    _join_background_compilations()
+    assert len(calls) == 3 and not calls[2].items() >= quick_options.items(), calls
+    solutions.append(lc.solve(task))  # the optimised program
+    assert len(calls) == 3, calls
+    for sol in solutions:
+        _assert_same(sol, reference)
+    assert not list(exports.iterdir())
 
 
 def test_a_batch_of_starts_is_served_from_its_export(exports):

@@ -35,7 +35,9 @@ derivative is traced.
 The exports live in the persistent compilation cache's directory (``jax_compilation_cache_dir``,
 set by :func:`ldap_jax.enable_compilation_cache`), under ``ldap_jax_exports/``. Without a cache
 directory the solver's programs are exported in memory only (:data:`IN_MEMORY`): the process's
-first solve still gets the quick first compilation (:func:`prepare`), and nothing is written.
+first solve still gets the quick first compilation (:func:`prepare`), and nothing is written;
+the optimised compilation that follows it starts with the program's second call (a script that
+solves once exits after its answer).
 ``LDAP_JAX_EXPORT=0`` turns exports off.
 
 The process that compiles an exported program also stores its executable there (keyed by the
@@ -322,7 +324,9 @@ def prepare(
     process's first such program: first with :data:`QUICK_OPTIONS` (about half XLA's time; the
     program runs about 3x slower), which the first calls use, then, in the same thread, with the
     library's options, which later calls use once it is ready and whose executable is the one
-    stored for later processes. ``LDAP_JAX_QUICK_FIRST=0`` turns this off."""
+    stored for later processes. Without a cache directory (nothing stored) that second
+    compilation starts at the program's second call instead, in a thread of its own.
+    ``LDAP_JAX_QUICK_FIRST=0`` turns this off."""
     if not _serves(name):
         return None
     from .._compilation_cache import in_trace
@@ -608,6 +612,7 @@ def _runner(
     compiled = _compiled(exported, name)
     executable: list = [None]  # the compiled program, once the first call has it
     optimised: list = [None]  # with quick: the program with the library's options, once ready
+    deferred: list = [None]  # with quick and no cache directory: its compilation, not yet started
     avals = [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in leaves]
 
     # the quick program only for the first program of a process that asks for one: later in a
@@ -630,9 +635,21 @@ def _runner(
             if store is not None:
                 store()
 
+        if export_dir() is None:
+            # nothing to store: the optimised program would serve only later calls in this
+            # process, so a second call starts it (a one-shot script exits after its answer
+            # instead of waiting for a compilation that no call uses)
+            deferred[0] = then
+            return first, None
         return first, then
 
     pending = _Background(build, name)
+
+    def start_deferred():
+        with _lock:
+            then, deferred[0] = deferred[0], None
+        if then is not None:
+            _Background(lambda: (None, then), f"{name}-optimised")
 
     def runner(xs):
         # NumPy arrays: never weakly typed, so a value made under grad (a Python number that
@@ -649,6 +666,8 @@ def _runner(
                     executable[0] = program
                     pending.forget()
                     return jax.tree_util.tree_unflatten(out_def, outs)
+        if deferred[0] is not None:
+            start_deferred()
         return jax.tree_util.tree_unflatten(out_def, executable[0](*xs))
 
     runner.out_shapes = jax.tree_util.tree_unflatten(
