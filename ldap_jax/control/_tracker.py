@@ -23,6 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from .._compilation_cache import jit
 from .._discrete import discretize
 from .._policy import AbstractPolicy
 from . import _export
@@ -126,7 +127,7 @@ def _tracker_of(task: Task, params, q_weight, r_weight, sweeps: int):
     return z_nodes, K
 
 
-_tracker_traced = eqx.filter_jit(_tracker_of)
+_tracker_traced = jit(_tracker_of)  # the library's compile options, as the exported program's
 
 
 def _tracker(task: Task, params, q_weight, r_weight, sweeps: int):
