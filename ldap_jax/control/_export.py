@@ -613,6 +613,7 @@ def _runner(
     executable: list = [None]  # the compiled program, once the first call has it
     optimised: list = [None]  # with quick: the program with the library's options, once ready
     deferred: list = [None]  # with quick and no cache directory: its compilation, not yet started
+    deferred_lock = threading.Lock()
     avals = [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in leaves]
 
     # the quick program only for the first program of a process that asks for one: later in a
@@ -646,7 +647,7 @@ def _runner(
     pending = _Background(build, name)
 
     def start_deferred():
-        with _lock:
+        with deferred_lock:
             then, deferred[0] = deferred[0], None
         if then is not None:
             _Background(lambda: (None, then), f"{name}-optimised")
