@@ -614,6 +614,7 @@ def _runner(
     optimised: list = [None]  # with quick: the program with the library's options, once ready
     deferred: list = [None]  # with quick and no cache directory: its compilation, not yet started
     deferred_lock = threading.Lock()
+    stored = export_dir() is not None  # decided here, not in the compiling thread
     avals = [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in leaves]
 
     # the quick program only for the first program of a process that asks for one: later in a
@@ -636,7 +637,7 @@ def _runner(
             if store is not None:
                 store()
 
-        if export_dir() is None:
+        if not stored:
             # nothing to store: the optimised program would serve only later calls in this
             # process, so a second call starts it (a one-shot script exits after its answer
             # instead of waiting for a compilation that no call uses)

@@ -133,9 +133,10 @@ def solve(
     A process's first solve (with the cache on, the first process to solve a structure) compiles
     its interior-point program quickly first (XLA's LLVM passes off: its first solves run about 3x
     slower, for the few seconds the optimised program takes to compile behind them in another
-    thread; the solutions agree to 1e-13), with or without the cache, and with the cache on stores
-    the optimised one for later processes (``LDAP_JAX_QUICK_FIRST=0``: the optimised program
-    only).
+    thread; the solutions agree to 1e-13), with or without the cache. With the cache on it stores
+    the optimised one for later processes; without it, the optimised compilation starts at the
+    process's second solve, so a script that solves once exits after its answer
+    (``LDAP_JAX_QUICK_FIRST=0``: the optimised program only).
 
     Args:
         task: a task with per-step sampled controls (:class:`SampledControls`).
