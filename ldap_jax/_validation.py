@@ -56,8 +56,16 @@ def is_concrete(tree: Any) -> bool:
 
 
 def check_positive_int(name: str, x: Any) -> int:
-    """``x`` as a Python int >= 1, or a ``TypeError`` (not an integer: a float, a bool, a string)
-    or ``ValueError`` (< 1) naming ``name``."""
+    """``x`` as a Python int >= 1, or a ``TypeError`` (not an integer: a float, a bool, a string,
+    a traced value) or ``ValueError`` (< 1) naming ``name``. A known 0-d integer JAX array counts
+    as its value."""
+    if isinstance(x, jax.Array) and x.ndim == 0 and jnp.issubdtype(x.dtype, jnp.integer):
+        if not is_concrete(x):
+            raise TypeError(
+                f"'{name}' must be a positive integer known when the program is traced (it sets a "
+                f"loop or an array size), got a traced value {x!r}"
+            )
+        x = int(x)
     if isinstance(x, bool) or not isinstance(x, (int, np.integer)):
         raise TypeError(f"'{name}' must be a positive integer, got {x!r}")
     if x < 1:

@@ -1090,6 +1090,59 @@ TASK_RAISES = {
         ValueError,
         "'tol'",
     ),
+    # the pieces of a task (a second battery, on the control and gait API): each was accepted and
+    # either clamped, truncated, dropped or failed later with a message that did not name it
+    "rest index out of range": (
+        lambda: _make_task(constraints=(lc.TerminalRest((7,)),)),
+        ValueError,
+        "TerminalRest indices \\[7\\] out of range: Car has 1",
+    ),
+    "rest index float": (lambda: lc.InitialRest((1.5,)), TypeError, "'indices'"),
+    "rest weight nan": (lambda: lc.TerminalRest((0,), weight=NAN), ValueError, "'weight'"),
+    "bound triple": (lambda: lc.Bounds.of(CAR, q={"sigma": (-1.0, 1.0, 5.0)}), ValueError, "'sigma'.*pair"),
+    "bound single": (lambda: lc.Bounds.of(CAR, q={"sigma": (1.0,)}), ValueError, "'sigma'.*pair"),
+    "bounds weight<0": (lambda: lc.Bounds.of(CAR, weight=-5.0), ValueError, "Bounds: 'weight'"),
+    "gait max_torque one": (lambda: lc.drive_gait(max_torque=(0.1,)), ValueError, "'max_torque'"),
+    "gait max_torque three": (lambda: lc.drive_gait(max_torque=(0.1, 0.1, 0.1)), ValueError, "'max_torque'"),
+    "gait n_steps float": (lambda: lc.drive_gait(n_steps=40.0), TypeError, "'n_steps'"),
+    "guess starts 0": (lambda: lc.Guess(starts=0), ValueError, "'starts'"),
+    "guess amplitude nan": (lambda: lc.Guess(amplitude=NAN), ValueError, "'amplitude'"),
+    "guess controls shape": (
+        lambda: _make_task(guess=lc.Guess(controls=np.zeros((5, 2)))),
+        ValueError,
+        "'guess'.*\\(11, 2\\)",
+    ),
+    "effort channels": (lambda: _make_task(objective=(lc.Effort(np.ones(3)),)), ValueError, "Effort's scale"),
+    "effort scale 0": (lambda: lc.Effort(np.array([0.0, 0.5])), ValueError, "Effort: 'scale'"),
+    "effort weight<0": (lambda: lc.Effort(np.ones(2), weight=-1.0), ValueError, "Effort: 'weight'"),
+    "displacement nan": (lambda: lc.Displacement(direction=(NAN, 0.0)), ValueError, "'direction'"),
+    "net displacement nan": (lambda: lc.NetDisplacement(dx=NAN), ValueError, "finite"),
+    "sampled scale 0": (lambda: lc.SampledControls(1.0, N, np.zeros(2)), ValueError, "'scale'"),
+    "path constraint arity": (lambda: lc.PathConstraint(lambda q: q[0]), TypeError, "4 arguments"),
+    "terminal constraint matrix": (
+        lambda: _make_task(constraints=(lc.TerminalConstraint(lambda q, qd: jnp.zeros((2, 2))),)).value(
+            jnp.zeros((N + 1, 2))
+        ),
+        ValueError,
+        "scalar or a vector",
+    ),
+    "solve gait params": (
+        lambda: lc.solve(PARK, lc.GaitParams(jnp.zeros((N + 1, 2)), jnp.zeros(4))),
+        TypeError,
+        "'params0'.*GaitParams",
+    ),
+    "replay gait params": (
+        lambda: lc.replay(PARK, lc.GaitParams(jnp.zeros((N + 1, 2)), jnp.zeros(4))),
+        TypeError,
+        "'params'.*GaitParams",
+    ),
+    "monodromy not periodic": (lambda: lc.monodromy(PARK, PARK.init()), ValueError, "periodic"),
+    "cycle_map not periodic": (lambda: lc.cycle_map(PARK, PARK.init(), jnp.zeros(4)), ValueError, "periodic"),
+    "n_steps traced": (
+        lambda: jax.jit(lambda n: PARK.with_options(n_steps=n))(8),
+        TypeError,
+        "'n_steps'.*traced",
+    ),
 }
 
 
@@ -1098,6 +1151,32 @@ def test_control_arguments(name):
     make, exc, match = TASK_RAISES[name]
     with pytest.raises(exc, match=match):
         make()
+
+
+def test_task_pieces_known_integers_and_resampled_guesses():
+    """Known JAX integers count as their values (``n_steps``, ``cycles``, ``max_iterations``); a
+    Python list is a guess like an array; a scalar torque bound is every channel's; a gait whose
+    ``n_steps`` changes keeps its own guess, resampled to the new nodes (against the guess built
+    at those nodes: within linear interpolation's error bound for its sinusoids, 1.8e-3);
+    and a NaN bound makes a task invalid when traced, as lower > upper does (``lc.solve`` reports
+    ``invalid_input``; NaN compared false, and the bound was silently dropped)."""
+    from ldap_jax.control._solve import _checked, valid_task
+
+    assert lc.parallel_park(n_steps=jnp.array(N)).n_steps == N
+    _, from_list, _ = _checked(PARK, PARK.init().tolist(), 1e-8, jnp.array(5), "base", 0.1, None)
+    np.testing.assert_array_equal(np.asarray(from_list), np.asarray(PARK.init()))
+    np.testing.assert_array_equal(np.asarray(lc.drive_gait(max_torque=0.1).bounds.u_upper), [0.1, 0.1])
+    moved = lc.drive_gait(n_steps=100).with_options(n_steps=30)
+    built = lc.drive_gait(n_steps=30)
+    assert moved.guess.controls.shape == built.guess.controls.shape == (31, 2)
+    # linear interpolation on a grid of 1/100: at most h^2/8 max|f''| = 1e-4/8 * 0.9 (4 pi)^2
+    bound = 1e-4 / 8 * 0.9 * (4 * np.pi) ** 2
+    assert 0 < np.max(np.abs(np.asarray(moved.guess.controls) - np.asarray(built.guess.controls))) < bound
+    b = PARK.bounds
+    valid = jax.jit(
+        lambda lo: valid_task(PARK.with_options(bounds=lc.Bounds(lo, b.q_upper, b.u_lower, b.u_upper)))
+    )
+    assert [bool(valid(x)) for x in (b.q_lower, b.q_lower.at[4].set(NAN), b.q_upper)] == [True, False, False]
 
 
 def test_optimize_warns_when_the_loss_is_never_finite():

@@ -32,7 +32,7 @@ def test_drive_gait_is_a_periodic_orbit_that_holds_on_the_reference(drive):
     task, sol = drive
     assert bool(sol.converged), lc.SOLVER_RESULTS[sol.result]
     assert float(sol.max_violation) <= 1e-9
-    rp = lc.replay_gait(task, sol.params, cycles=3)
+    rp = lc.replay_gait(task, sol, cycles=3)  # the Solution counts as its params
     assert rp["reference_result"] == lj.RESULTS.successful
     assert rp["model_return_error"] <= 1e-9
     assert abs(float(rp["model_displacement"][2])) <= 1e-9
@@ -51,7 +51,7 @@ def test_monodromy_matches_finite_differences_of_the_cycle_map(drive):
     matrix, not its eigenvalues, which the Jordan blocks at 1 make sensitive)."""
     task, sol = drive
     z0, M = lc.monodromy(task, sol.params)
-    P = eqx.filter_jit(lambda z: lc.cycle_map(task, sol.params, z))
+    P = lambda z: lc.cycle_map(task, sol.params, z)  # noqa: E731 (one compiled program)
     z0, M = np.asarray(z0), np.asarray(M)
     np.testing.assert_allclose(np.asarray(P(z0)), z0, atol=1e-9)  # a fixed point
     eps = 1e-6
@@ -117,6 +117,41 @@ def test_gait_bad_inputs_are_clear():
         lc.replay_gait(lc.parallel_park(n_steps=10), None)
     with pytest.raises(ValueError, match="'cycles'"):
         lc.replay_gait(lc.drive_gait(n_steps=10), None, cycles=0)
+
+
+def test_gait_analysis_and_tracker_check_their_inputs(drive):
+    """The cycle map, the monodromy and the tracker name what is wrong with their inputs: a ``z``
+    of another shape (eagerly and under ``jit``; it was padded or truncated), a start whose period
+    fails (the snakeboard's singularity: NaN with no reason before), NaN parameters, parameters
+    of a fixed-start task, weights that are not positive and finite and a fractional number of
+    sweeps (NaN gains or a silent zero feedback before); a tracker built from a solution that
+    did not converge warns (its start is not a periodic orbit)."""
+    task, sol = drive
+    z0 = np.asarray(lc.monodromy(task, sol)[0])
+    for z in (z0[:3], np.append(z0, 0.0)):
+        with pytest.raises(ValueError, match="'z' must have shape \\(4,\\)"):
+            lc.cycle_map(task, sol.params, z)
+    with pytest.raises(ValueError, match="'z' must have shape"):
+        jax.jit(lambda z: lc.cycle_map(task, sol.params, z))(jnp.zeros(5))
+    with pytest.raises(ValueError, match="rollout from 'z' failed: singular"):
+        lc.cycle_map(task, sol.params, np.array([np.pi / 2, 0.0, 0.0, 0.0]))
+    nan_start = lc.GaitParams(sol.params.controls, sol.params.state.at[0].set(jnp.nan))
+    with pytest.raises(ValueError, match="'params' must be finite"):
+        lc.monodromy(task, nan_start)
+    with pytest.raises(TypeError, match="'params' of a periodic task must be lc.GaitParams"):
+        lc.replay_gait(task, sol.params.controls)
+    for kw, match in (
+        (dict(r_weight=float("nan")), "'r_weight'"),
+        (dict(q_weight=-1.0), "'q_weight'"),
+        (dict(q_weight=0.0), "'q_weight'"),
+        (dict(sweeps=2.5), "'sweeps'"),
+    ):
+        with pytest.raises((TypeError, ValueError), match=match):
+            lc.gait_tracker(task, sol, **kw)
+    unconverged = lc.solve(task, max_iterations=2)
+    assert not bool(unconverged.converged)
+    with pytest.warns(UserWarning, match="did not converge"):
+        lc.gait_tracker(task, unconverged)
 
 
 def test_tracker_holds_the_drive_gait_under_model_error(drive):

@@ -14,10 +14,18 @@ from .._rollout import check_checkpoint
 from .._validation import check_array, check_positive_int, check_scalar, is_concrete, known_initial_violation
 from ..integrators import RDP, AbstractIntegrator
 from ..systems import AbstractSystem
-from ._constraints import AbstractConstraint, AbstractInitialConstraint, Bounds, Periodic, TerminalPose
+from ._constraints import (
+    AbstractConstraint,
+    AbstractInitialConstraint,
+    Bounds,
+    InitialRest,
+    Periodic,
+    TerminalPose,
+    TerminalRest,
+)
 from ._parameterizations import AbstractParameterization, SampledControls
 from ._task import Guess, Task
-from ._terms import AbstractTerm
+from ._terms import AbstractTerm, Effort
 
 __all__ = ["make_task"]
 
@@ -142,7 +150,34 @@ def make_task(
         checkpoint=check_checkpoint(checkpoint),
     )
     _check_values(task)
+    _check_pieces(task)
     return task
+
+
+def _check_pieces(task: Task) -> None:
+    """Shapes the pieces must agree on: the effort's scale and the explicit guess against the
+    channels and nodes, the rest conditions' indices against the minimal velocities."""
+    m, n_v = task.system.n_controls, task.system.n_velocities
+    for term in task.objective:
+        if isinstance(term, Effort) and jnp.shape(term.scale) not in ((m,), (1,)):
+            raise ValueError(
+                f"'objective': lc.Effort's scale has shape {jnp.shape(term.scale)}, "
+                f"{type(task.system).__name__} has {m} control channels {task.system.control_names}"
+            )
+    for con in task.constraints:
+        if isinstance(con, (TerminalRest, InitialRest)):
+            bad = [i for i in con.indices if not -n_v <= i < n_v]
+            if bad:
+                raise ValueError(
+                    f"'constraints': {type(con).__name__} indices {bad} out of range: "
+                    f"{type(task.system).__name__} has {n_v} minimal velocities"
+                )
+    guess = task.guess.controls
+    if guess is not None and jnp.shape(guess) != (task.n_steps + 1, m):
+        raise ValueError(
+            f"'guess': Guess.controls must have shape {(task.n_steps + 1, m)} (N + 1 nodes, channels), "
+            f"got {jnp.shape(guess)}"
+        )
 
 
 def _check_types(system, objective, constraints, bounds, controls, integrator, guess, name) -> None:
@@ -287,13 +322,24 @@ def rebuild(task: Task, **changes) -> Task:
         constraints = tuple(
             dataclasses.replace(c, goal=goal) if isinstance(c, TerminalPose) else c for c in constraints
         )
-    n_steps = changes.pop("n_steps", task.n_steps)
+    n_steps = check_positive_int("n_steps", changes.pop("n_steps", task.n_steps))
     t_final = changes.pop("t_final", task.t_final)
     controls = changes.pop("controls", task.parameterization)
     if isinstance(controls, SampledControls) and (n_steps != controls.n_steps or t_final is not task.t_final):
-        controls = SampledControls(
-            t_final, check_positive_int("n_steps", n_steps), controls.scale, t0=controls.t0
-        )
+        controls = SampledControls(t_final, n_steps, controls.scale, t0=controls.t0)
+    guess = changes.pop("guess", task.guess)
+    if (
+        guess is task.guess
+        and guess.controls is not None
+        and is_concrete(guess.controls)
+        and n_steps != task.n_steps
+    ):
+        # the task's own explicit guess, resampled (linearly, over the normalised time) to the new nodes
+        old = np.asarray(guess.controls)
+        s_new = np.linspace(0, 1, n_steps + 1)
+        s_old = np.linspace(0, 1, old.shape[0])
+        resampled = np.stack([np.interp(s_new, s_old, col) for col in old.T], axis=1)
+        guess = dataclasses.replace(guess, controls=resampled)
     return make_task(
         changes.pop("system", task.system),
         t_final=t_final,
@@ -305,7 +351,7 @@ def rebuild(task: Task, **changes) -> Task:
         bounds=changes.pop("bounds", task.bounds),
         controls=controls,
         integrator=changes.pop("integrator", task.integrator),
-        guess=changes.pop("guess", task.guess),
+        guess=guess,
         objective_weight=task.objective_weight,
         name=changes.pop("name", task.name),
         checkpoint=changes.pop("checkpoint", task.checkpoint),

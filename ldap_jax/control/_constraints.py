@@ -20,6 +20,7 @@ A constraint of your own subclasses :class:`AbstractTerminalConstraint`,
 from __future__ import annotations
 
 import abc
+import inspect
 from collections.abc import Callable
 from typing import Any
 
@@ -31,6 +32,7 @@ from jaxtyping import Array, Float
 
 from .._compilation_cache import asarray
 from .._typing import ArrayLike
+from .._validation import is_concrete
 from ._terms import bound_penalty, displacement, pose_error
 
 __all__ = [
@@ -50,9 +52,68 @@ __all__ = [
 ]
 
 
+def _indices(x: Any) -> tuple[int, ...]:
+    """A tuple of Python ints (the velocity indices of a rest condition), or a ``TypeError``."""
+    items = (x,) if isinstance(x, (int, np.integer)) else x
+    try:
+        items = tuple(items)
+    except TypeError:
+        items = None
+    if not items or any(isinstance(i, bool) or not isinstance(i, (int, np.integer)) for i in items):
+        raise TypeError(f"'indices' must be a non-empty tuple of integers (velocity indices), got {x!r}")
+    return tuple(int(i) for i in items)
+
+
+def _rest_residual(con: Any, system: Any, obs: Any) -> Array:
+    v = system.velocities_from_qdot(obs.q, obs.qdot)
+    n = v.shape[-1]
+    bad = [i for i in con.indices if not -n <= i < n]
+    if bad:
+        raise ValueError(
+            f"{type(con).__name__}: 'indices' {bad} out of range: {type(system).__name__} has {n} "
+            "minimal velocities (system.velocities_from_qdot)"
+        )
+    return v[jnp.asarray(con.indices, int)]
+
+
+def _user_residual(con: Any, r: Any) -> Array:
+    r = jnp.atleast_1d(r)
+    if r.ndim != 1:
+        raise ValueError(f"{type(con).__name__}: 'fn' must return a scalar or a vector, got shape {r.shape}")
+    return r
+
+
+def _check_fn(con: Any, n_args: int, signature: str) -> None:
+    """``con.fn`` callable with ``n_args`` positional arguments (where Python can tell)."""
+    if not callable(con.fn):
+        raise TypeError(f"{type(con).__name__}: 'fn' must be a function {signature}, got {con.fn!r}")
+    try:
+        sig = inspect.signature(con.fn)
+    except (TypeError, ValueError):  # a builtin without a signature: not checked
+        return
+    try:
+        sig.bind(*range(n_args))
+    except TypeError as err:
+        raise TypeError(
+            f"{type(con).__name__}: 'fn' must take {n_args} arguments {signature}; {con.fn!r} {err}"
+        ) from None
+
+
+def check_weight(owner: str, w: Any, *, signed: bool = False) -> None:
+    """A known penalty or objective weight must be finite (and >= 0 unless ``signed``)."""
+    if w is not None and is_concrete(w) and np.ndim(w) == 0:
+        v = float(w)
+        if not np.isfinite(v) or (not signed and v < 0):
+            need = "finite" if signed else "non-negative and finite"
+            raise ValueError(f"{owner}: 'weight' must be {need}, got {v}")
+
+
 class AbstractConstraint(eqx.Module):
     """A constraint; its ``weight`` (a field of every concrete constraint) is its weight in the
     penalty form (:meth:`Task.loss`)."""
+
+    def __check_init__(self):
+        check_weight(type(self).__name__, getattr(self, "weight", None))
 
     def penalty(self, r: Array) -> Array:
         """The penalty of the residual ``r`` (equalities: ``weight |r|^2``)."""
@@ -109,14 +170,13 @@ class TerminalPose(AbstractTerminalConstraint):
 class TerminalRest(AbstractTerminalConstraint):
     """The minimal velocities ``v = system.velocities_from_qdot(q, qdot)`` with indices
     ``indices`` vanish at ``t_N`` (the car's wheel rate ``(0,)``; the snakeboard's board speed
-    ``s``, ``(2,)``)."""
+    ``s``, ``(2,)``). An index outside the system's minimal velocities is an error."""
 
-    indices: tuple[int, ...] = eqx.field(static=True)
+    indices: tuple[int, ...] = eqx.field(static=True, converter=_indices)
     weight: Array = eqx.field(default=1.0, converter=asarray)
 
     def residual(self, system, obs, q0=None):
-        v = system.velocities_from_qdot(obs.q, obs.qdot)
-        return v[jnp.asarray(self.indices, int)]
+        return _rest_residual(self, system, obs)
 
     def terminal(self, system, obs, q0):
         return self.penalty(self.residual(system, obs, q0))
@@ -148,6 +208,8 @@ class NetDisplacement(AbstractTerminalConstraint):
             self.target = asarray(np.stack([np.asarray(x, real) for _, x in given]))
         if self.target.ndim != 1:
             raise ValueError(f"NetDisplacement: each target must be a scalar, got shape {self.target.shape}")
+        if is_concrete(self.target) and not np.all(np.isfinite(np.asarray(self.target))):
+            raise ValueError(f"NetDisplacement: the targets must be finite, got {np.asarray(self.target)}")
         self.weight = asarray(weight)
 
     def residual(self, system, obs, q0):
@@ -160,8 +222,11 @@ class TerminalConstraint(AbstractTerminalConstraint):
     fn: Callable
     weight: Array = eqx.field(default=1.0, converter=asarray)
 
+    def __check_init__(self):
+        _check_fn(self, 2, "fn(q, qdot)")
+
     def residual(self, system, obs, q0):
-        return jnp.atleast_1d(self.fn(obs.q, obs.qdot))
+        return _user_residual(self, self.fn(obs.q, obs.qdot))
 
 
 class PathConstraint(AbstractPathConstraint):
@@ -172,20 +237,22 @@ class PathConstraint(AbstractPathConstraint):
     fn: Callable
     weight: Array = eqx.field(default=1.0, converter=asarray)
 
+    def __check_init__(self):
+        _check_fn(self, 4, "fn(t, q, qdot, c)")
+
     def residual(self, system, t, obs, c):
-        return jnp.atleast_1d(self.fn(t, obs.q, obs.qdot, c))
+        return _user_residual(self, self.fn(t, obs.q, obs.qdot, c))
 
 
 class InitialRest(AbstractInitialConstraint):
     """The minimal velocities with indices ``indices`` vanish at the (free) start: the anchor of
     a periodic gait (the snakeboard's board speed ``s``: ``(2,)``; the car's wheel rate: ``(0,)``)."""
 
-    indices: tuple[int, ...] = eqx.field(static=True)
+    indices: tuple[int, ...] = eqx.field(static=True, converter=_indices)
     weight: Array = eqx.field(default=1.0, converter=asarray)
 
     def residual(self, system, obs, c):
-        v = system.velocities_from_qdot(obs.q, obs.qdot)
-        return v[jnp.asarray(self.indices, int)]
+        return _rest_residual(self, system, obs)
 
 
 class InitialConstraint(AbstractInitialConstraint):
@@ -194,8 +261,11 @@ class InitialConstraint(AbstractInitialConstraint):
     fn: Callable
     weight: Array = eqx.field(default=1.0, converter=asarray)
 
+    def __check_init__(self):
+        _check_fn(self, 3, "fn(q, qdot, c)")
+
     def residual(self, system, obs, c):
-        return jnp.atleast_1d(self.fn(obs.q, obs.qdot, c))
+        return _user_residual(self, self.fn(obs.q, obs.qdot, c))
 
 
 class Periodic(AbstractConstraint):
@@ -235,6 +305,9 @@ class Bounds(eqx.Module):
     u_upper: Float[Array, " n"] = eqx.field(converter=asarray)
     weight: Array = eqx.field(default=100.0, converter=asarray)
 
+    def __check_init__(self):
+        check_weight("Bounds", self.weight)
+
     @classmethod
     def of(cls, system, *, q: dict | None = None, u: dict | None = None, weight: float = 100.0) -> Bounds:
         """Bounds named by coordinate (``x``, ``y``, ``theta`` and ``system.shape_names``) and
@@ -255,12 +328,37 @@ class Bounds(eqx.Module):
         return self.weight * h * pen
 
 
+def per_channel(arg: str, names: tuple[str, ...], value: Any) -> dict:
+    """``{name: bound}`` for each of ``names`` from ``value``: one bound for every channel (a
+    number ``b`` or a pair ``(lo, hi)`` when there is one channel) or a sequence of one bound per
+    channel; anything else is a ``ValueError`` naming ``arg``."""
+    try:
+        items = list(value)
+    except TypeError:  # a number (or a 0-d array): every channel
+        return dict.fromkeys(names, value)
+    if len(names) == 1 and len(items) == 2 and all(np.ndim(x) == 0 for x in items):
+        return dict.fromkeys(names, value)
+    if items is None or len(items) != len(names):
+        raise ValueError(
+            f"'{arg}' must be one bound for every channel or one per channel {names}, got {value!r}"
+        )
+    return dict(zip(names, items))
+
+
 def _by_name(what: str, spec: dict, names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
     lo, hi = np.full(len(names), -np.inf), np.full(len(names), np.inf)
     for key, value in spec.items():
         if key not in names:
             raise ValueError(f"Bounds: unknown {what} name {key!r}; the names are {names}")
-        a, b = (-float(value), float(value)) if np.ndim(value) == 0 else (float(value[0]), float(value[1]))
+        if np.ndim(value) == 0:
+            a, b = -float(value), float(value)
+        elif np.shape(value) == (2,):
+            a, b = float(value[0]), float(value[1])
+        else:
+            raise ValueError(
+                f"Bounds: the {what} bound of {key!r} must be a number b ([-b, b]) or a pair "
+                f"(lo, hi), got {value!r}"
+            )
         if not a < b:
             raise ValueError(f"Bounds: the {what} bound of {key!r} must have lower < upper, got ({a}, {b})")
         i = names.index(key)

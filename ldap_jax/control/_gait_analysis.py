@@ -23,12 +23,24 @@ import numpy as np
 from jaxtyping import Array
 
 from .. import lie
-from .._compilation_cache import jit
+from .._compilation_cache import asarray, jit
 from .._reference import reference
+from .._results import RESULTS
+from .._validation import is_concrete
 from . import _export
+from ._solve import checked_params
 from ._task import Task
 
 __all__ = ["cycle_map", "monodromy", "floquet", "replay_gait"]
+
+
+def gait_params(task: Task, params, where: str):
+    """One solution's ``params`` of the periodic ``task``, checked (:func:`checked_params`)."""
+    if isinstance(task, Task) and task.periodic is None:
+        raise ValueError(
+            f"{where} needs a periodic task (lc.drive_gait(), lc.make_gait(...)), got {task.name!r}"
+        )
+    return checked_params(task, params, where)
 
 
 def _keep(task: Task) -> np.ndarray:
@@ -50,23 +62,50 @@ def _start(task: Task, params, z: Array) -> tuple[Array, Array]:
 
 
 def _one_cycle(task: Task, params, z: Array):
+    """``(P(z), the group at the period's end, the rollout's result, whether it failed)``."""
     q0, qdot0 = _start(task, params, z)
     traj = task.rollout(params, start=(q0, qdot0), save="final")
     q, qdot = traj.q.reshape(-1, q0.shape[0])[-1], traj.qdot.reshape(-1, q0.shape[0])[-1]
-    return reduced_state(task, q, qdot), q[:3]
+    return reduced_state(task, q, qdot), q[:3], traj.result, traj.failed
 
 
 def cycle_map(task: Task, params, z: Array) -> Array:
     """``P(z)``: the reduced state after one period of the task's discrete dynamics, from the
-    start with reduced state ``z`` (group at the identity, cyclic coordinates at 0)."""
-    return _one_cycle(task, params, z)[0]
+    start with reduced state ``z`` (group at the identity, cyclic coordinates at 0).
+
+    ``z`` has the shape of :func:`monodromy`'s ``z*`` (the non-cyclic shape coordinates, then the
+    minimal velocities). Where the period's rollout fails (the snakeboard's ``cos(phi) = 0``, a
+    non-finite state), ``P(z)`` is NaN; called on known values, that is an error naming the
+    rollout's result.
+
+    Raises:
+        TypeError, ValueError: a task that is not periodic, ``params`` that are not its
+            :class:`GaitParams`, ``z`` of the wrong shape; on known values, a failed rollout.
+    """
+    params = gait_params(task, params, "cycle_map")
+    n_z = _keep(task).size + task.system.n_velocities
+    if jnp.shape(z) != (n_z,):
+        raise ValueError(
+            f"cycle_map: 'z' must have shape ({n_z},) (the non-cyclic shape coordinates and the "
+            f"minimal velocities), got {jnp.shape(z)}"
+        )
+    z_next, result = _cycle_map(task, params, asarray(z, task.bounds.q_lower.dtype))
+    if is_concrete((z_next, result)) and not np.all(np.isfinite(np.asarray(z_next))):
+        raise ValueError(f"cycle_map: the period's rollout from 'z' failed: {RESULTS[result]}")
+    return z_next
+
+
+@eqx.filter_jit
+def _cycle_map(task: Task, params, z: Array):
+    z1, _, result, failed = _one_cycle(task, params, z)
+    return jnp.where(failed, jnp.nan, z1), result
 
 
 def _analysis_of(task: Task, params):
     q0, qdot0 = task.initial_state(params)
     z0 = reduced_state(task, q0, qdot0)
-    (z1, g1) = _one_cycle(task, params, z0)
-    M = jax.jacfwd(lambda z: cycle_map(task, params, z))(z0)
+    z1, g1, _, _ = _one_cycle(task, params, z0)
+    M = jax.jacfwd(lambda z: _one_cycle(task, params, z)[0])(z0)
     return z0, z1, g1, M, q0, qdot0
 
 
@@ -90,8 +129,13 @@ def _cycle_starts(task: Task, q: Array, qdot: Array) -> tuple[Array, Array]:
 
 
 def monodromy(task: Task, params) -> tuple[Array, Array]:
-    """``(z*, M)``: the gait's start reduced state and the Jacobian of the cycle map there."""
-    z0, _, _, M, _, _ = _analysis(task, params)
+    """``(z*, M)``: the gait's start reduced state and the Jacobian of the cycle map there.
+
+    Raises:
+        TypeError, ValueError: a task that is not periodic, ``params`` that are not its
+            :class:`GaitParams` (a :class:`~ldap_jax.control.Solution` counts as its ``params``).
+    """
+    z0, _, _, M, _, _ = _analysis(task, gait_params(task, params, "monodromy"))
     return z0, M
 
 
@@ -150,7 +194,8 @@ def replay_gait(task: Task, params, *, cycles: int = 3, rtol: float = 1e-11, ato
 
     Args:
         task: a periodic task (``lc.drive_gait()``, ``lc.make_gait(...)``).
-        params: its solution's parameters (``lc.solve(task).params``: :class:`GaitParams`).
+        params: its solution's parameters (``lc.solve(task).params``: :class:`GaitParams`; the
+            :class:`~ldap_jax.control.Solution` itself is taken as its ``params``).
         cycles: periods to replay (a positive integer; default 3).
         rtol, atol: the reference's tolerances (default 1e-11).
 
@@ -167,15 +212,16 @@ def replay_gait(task: Task, params, *, cycles: int = 3, rtol: float = 1e-11, ato
         the replay; ``reference_result``.
 
     Raises:
-        ValueError: a task that is not periodic; ``cycles`` not a positive integer.
+        TypeError, ValueError: a task that is not periodic, ``params`` that are not its
+            :class:`GaitParams`; ``cycles`` not a positive integer.
     """
-    if task.periodic is None:
-        raise ValueError(
-            f"replay_gait needs a periodic task (lc.drive_gait(), lc.make_gait(...)), got {task.name!r}"
-        )
+    known = isinstance(cycles, jax.Array) and is_concrete(cycles)
+    if known and cycles.ndim == 0 and cycles.dtype.kind in "iu":  # a concrete JAX integer
+        cycles = int(cycles)
     if isinstance(cycles, bool) or not isinstance(cycles, (int, np.integer)) or cycles < 1:
         raise ValueError(f"'cycles' must be a positive integer, got {cycles!r}")
     cycles = int(cycles)
+    params = gait_params(task, params, "replay_gait")
     z0, z1, g1, M, q0, qdot0 = _analysis(task, params)
     z0, z1, g1, M = (np.asarray(x) for x in (z0, z1, g1, M))
     n = task.n_steps

@@ -29,7 +29,7 @@ from .._validation import check_positive_int
 from ..integrators import AbstractIntegrator
 from ..systems import AbstractSystem, Car, Snakeboard, System, roller_racer
 from ._build import make_task
-from ._constraints import AbstractConstraint, Bounds, InitialRest, NetDisplacement, Periodic
+from ._constraints import AbstractConstraint, Bounds, InitialRest, NetDisplacement, Periodic, per_channel
 from ._parameterizations import SampledControls
 from ._task import Guess, Task
 from ._tasks import car_effort_scale
@@ -123,7 +123,7 @@ def make_gait(
 
 
 def _torque_bounds(sb: Snakeboard, max_torque, max_steer) -> Bounds:
-    return Bounds.of(sb, q={"phi": max_steer}, u=dict(zip(sb.control_names, max_torque)))
+    return Bounds.of(sb, q={"phi": max_steer}, u=per_channel("max_torque", sb.control_names, max_torque))
 
 
 def _drive_guess(n_steps: int) -> np.ndarray:
@@ -165,7 +165,7 @@ def drive_gait(
         cyclic=("psi",),
         bounds=_torque_bounds(sb, max_torque, max_steer),
         integrator=integrator,
-        guess=Guess(controls=_drive_guess(n_steps)),
+        guess=Guess(controls=_drive_guess(_steps(n_steps))),
         name="drive_gait",
     )
 

@@ -11,11 +11,13 @@ import abc
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
 from .._compilation_cache import asarray
 from .._controls import AbstractControls, Sampled, Sinusoids
 from .._typing import ArrayLike
+from .._validation import check_positive_int, is_concrete
 
 __all__ = ["AbstractParameterization", "SampledControls", "SinusoidGait", "PeriodicControls"]
 
@@ -49,13 +51,16 @@ class SampledControls(AbstractParameterization):
     n_steps: int = eqx.field(static=True)
 
     def __init__(self, t_final: ArrayLike, n_steps: int, scale: ArrayLike, *, t0: ArrayLike = 0.0):
-        if isinstance(n_steps, bool) or not isinstance(n_steps, int) or n_steps < 1:
-            raise ValueError(f"SampledControls: 'n_steps' must be a positive integer, got {n_steps!r}")
+        n_steps = check_positive_int("n_steps", n_steps)
         self.t_final = asarray(t_final, float)
         self.t0 = asarray(t0, float)
         self.scale = asarray(scale, float)
         if self.scale.ndim != 1:
             raise ValueError(f"SampledControls: 'scale' must be 1-d (n_channels,), got {self.scale.shape}")
+        if is_concrete(self.scale):
+            a = np.asarray(self.scale)
+            if not np.all(np.isfinite(a) & (a > 0)):
+                raise ValueError(f"SampledControls: 'scale' must be positive and finite, got {a}")
         self.n_steps = n_steps
 
     def controls(self, params: Float[Array, "K n"]) -> Sampled:

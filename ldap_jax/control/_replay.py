@@ -12,6 +12,7 @@ import numpy as np
 from .._compilation_cache import compiler_options
 from .._reference import reference
 from .._simulate import Trajectory
+from ._solve import checked_params
 from ._task import Task
 from ._terms import pose_error
 
@@ -28,7 +29,12 @@ def replay(task: Task, params, *, rtol: float = 1e-11, atol: float = 1e-11) -> d
     thetadot)``), the largest bound violation at the nodes on the reference (``max_bound_violation``),
     every term (``terms_reference``), the ``forward_displacement`` of the reference and its result
     (``reference_result``, an :data:`ldap_jax.RESULTS` item).
+
+    ``params`` are one solution's (``lc.solve(task).params``; the
+    :class:`~ldap_jax.control.Solution` itself counts as its ``params``, with a warning when it
+    did not converge); other values are a ``TypeError`` or ``ValueError`` naming them.
     """
+    params = checked_params(task, params, "replay")
     traj = task.rollout(params)
     q0, qdot0 = task.initial_state(params)
     ref = reference(task.system, q0, qdot0, task.controls(params), traj.t, rtol=rtol, atol=atol)

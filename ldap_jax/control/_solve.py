@@ -24,8 +24,8 @@ from ._kkt import objective, rollout
 from ._parameterizations import SampledControls
 from ._sensitivity import optimum
 from ._sequential import one_after_another
-from ._stage_form import from_variables, problem_functions, to_variables
-from ._task import Guess, Task
+from ._stage_form import from_variables, layout, problem_functions, to_variables
+from ._task import GaitParams, Guess, Task
 
 __all__ = ["Solution", "solve", "curvature_integrator", "setup"]
 
@@ -260,30 +260,77 @@ def _checked(task, params0, tol, max_iterations, hessian, curvature_tol, barrier
     return options, params0, batched
 
 
-def _check_guess(task: Task, params0):
+def checked_params(task: Task, params, where: str):
+    """One solution's ``params`` of ``task``, checked as :func:`solve` checks its guess (a
+    ``TypeError`` or ``ValueError`` naming ``where``'s argument) when the task has per-step
+    controls; a :class:`Solution` counts as its ``params``, with a warning when it did not
+    converge."""
+    if not isinstance(task, Task):
+        raise TypeError(f"{where}: 'task' must be an lc.Task (e.g. lc.drive_gait()), got {type(task)}")
+    if isinstance(params, Solution):
+        ok, result = params.converged, params.result
+        if is_concrete((ok, result)) and np.ndim(ok) == 0 and not bool(ok):
+            warnings.warn(
+                f"{where}: the solution did not converge ({SOLVER_RESULTS[result]}); for a periodic task "
+                "its start is not a periodic orbit",
+                stacklevel=3,
+            )
+        params = params.params
+    if not isinstance(task.parameterization, SampledControls):
+        return params  # another parameterization checks its own parameters when it reads them
+    params, batched = _check_guess(task, params, "params")
+    if batched:
+        raise ValueError(f"{where}: 'params' must be one solution's parameters, got a batch of them")
+    return params
+
+
+def _check_guess(task: Task, params0, name: str = "params0"):
     shape = (task.n_steps + 1, task.system.n_controls)
     periodic = task.periodic is not None
-    controls = params0.controls if periodic and hasattr(params0, "controls") else params0
-    if periodic and not hasattr(params0, "state"):
+    if periodic and not isinstance(params0, GaitParams):
         raise TypeError(
-            f"'params0' of a periodic task must be lc.GaitParams(controls, state), got {type(params0)}"
+            f"'{name}' of a periodic task must be lc.GaitParams(controls, state), "
+            f"got {type(params0).__name__}"
         )
+    if not periodic and isinstance(params0, GaitParams):
+        raise TypeError(
+            f"'{name}' of a task with a fixed start is an array of node controls {shape}, got lc.GaitParams "
+            "(the parameters of a periodic task)"
+        )
+    if not periodic and isinstance(params0, (list, tuple)):
+        try:
+            params0 = np.asarray(params0, float)
+        except (TypeError, ValueError) as err:
+            raise TypeError(f"'{name}' must be an array of numbers {shape}, got {type(params0)}") from err
+    if periodic and isinstance(params0.controls, (list, tuple)):
+        params0 = params0._replace(controls=np.asarray(params0.controls, float))
+    if periodic and isinstance(params0.state, (list, tuple)):
+        params0 = params0._replace(state=np.asarray(params0.state, float))
+    controls = params0.controls if periodic else params0
     try:
         if isinstance(controls, (str, bytes)):
             raise TypeError
         cshape = tuple(jnp.shape(controls))
     except TypeError as err:
-        raise TypeError(f"'params0' must be an array of numbers, got {type(controls)}") from err
+        raise TypeError(f"'{name}' must be an array of numbers, got {type(controls)}") from err
     batched = len(cshape) == 3 and cshape[1:] == shape
     if cshape[-2:] != shape or len(cshape) not in (2, 3):
         raise ValueError(
-            f"'params0' must have shape {shape} (N + 1 nodes, channels), or a batch of them, got {cshape}"
+            f"'{name}' must have shape {shape} (N + 1 nodes, channels), or a batch of them, got {cshape}"
         )
+    if periodic:
+        nz = layout(task, discretize(task.system, task.integrator, h=task.h)).nz
+        want = (*cshape[:-2], nz)
+        if tuple(jnp.shape(params0.state)) != want:
+            raise ValueError(
+                f"'{name}.state' must have shape {want} (the start's reduced state), "
+                f"got {jnp.shape(params0.state)}"
+            )
     params0 = jax.tree_util.tree_map(lambda x: asarray(x, task.bounds.q_lower.dtype), params0)
     with jax.ensure_compile_time_eval():
         leaves = jax.tree_util.tree_leaves(params0)
         if is_concrete(leaves) and not all(bool(np.all(np.isfinite(np.asarray(x)))) for x in leaves):
-            raise ValueError("'params0' must be finite (an initial guess with NaN or inf)")
+            raise ValueError(f"'{name}' must be finite (NaN or inf found)")
     return params0, batched
 
 
@@ -304,12 +351,13 @@ def _solver_view(task: Task) -> Task:
 
 def valid_task(task: Task) -> Array:
     """Whether the task's values, traced or not, are valid: the model's parameter checks, a
-    positive finite horizon, bounds with lower below upper, a finite start."""
+    positive finite horizon, bounds with lower below upper (no NaN), a finite start."""
     ok = jnp.isfinite(task.t_final) & (task.t_final > 0)
     for _, cond in task.system.parameter_checks():
         ok = ok & jnp.all(cond)
     b = task.bounds
-    ok = ok & jnp.all(~(b.q_lower >= b.q_upper)) & jnp.all(~(b.u_lower >= b.u_upper))
+    # lower < upper is false for a NaN bound, too
+    ok = ok & jnp.all(b.q_lower < b.q_upper) & jnp.all(b.u_lower < b.u_upper)
     if task.q0 is not None:
         ok = ok & jnp.all(jnp.isfinite(task.q0)) & jnp.all(jnp.isfinite(task.qdot0))
     return ok

@@ -24,6 +24,7 @@ from jaxtyping import Array, PRNGKeyArray
 from .._compilation_cache import asarray, compiled_unless_staged
 from .._discrete import discretize
 from .._simulate import Trajectory, simulate
+from .._validation import check_positive_int
 from ..integrators import AbstractIntegrator
 from ..systems import AbstractSystem
 from ._constraints import (
@@ -69,6 +70,13 @@ class Guess(eqx.Module):
     starts: int = eqx.field(static=True, default=1)
     seed: int = eqx.field(static=True, default=0)
     controls: Array | None = eqx.field(default=None, converter=lambda x: None if x is None else asarray(x))
+
+    def __check_init__(self):
+        check_positive_int("starts", self.starts)
+        if isinstance(self.amplitude, bool) or not (
+            isinstance(self.amplitude, (int, float, np.number)) and np.isfinite(self.amplitude)
+        ):
+            raise ValueError(f"Guess: 'amplitude' must be a finite number, got {self.amplitude!r}")
 
 
 class Task(eqx.Module):

@@ -13,7 +13,7 @@ import numpy as np
 from ..integrators import AbstractIntegrator
 from ..systems import Car, Snakeboard
 from ._build import make_task
-from ._constraints import Bounds, TerminalPose, TerminalRest
+from ._constraints import Bounds, TerminalPose, TerminalRest, per_channel
 from ._parameterizations import SampledControls, SinusoidGait
 from ._task import Guess, Task
 from ._terms import Effort, Forward
@@ -140,6 +140,7 @@ def forward_gait(
     cycle and its bounds are penalties. For a periodic gait with hard constraints use
     :func:`~ldap_jax.control.drive_gait` and :func:`~ldap_jax.control.solve`."""
     sb = system if system is not None else Snakeboard()
+    torques = per_channel("max_torque", sb.control_names, max_torque)
     return make_task(
         sb,
         t_final=t_final,
@@ -147,8 +148,10 @@ def forward_gait(
         q0=np.zeros(5),
         qdot0=np.zeros(5),
         objective=(Forward(),),
-        bounds=Bounds.of(sb, q={"phi": max_steer}, u=dict(zip(sb.control_names, max_torque)), weight=1e4),
-        controls=SinusoidGait(np.asarray(max_torque, float), n_terms=n_terms, frequency=frequency),
+        bounds=Bounds.of(sb, q={"phi": max_steer}, u=torques, weight=1e4),
+        controls=SinusoidGait(
+            np.asarray(list(torques.values()), float), n_terms=n_terms, frequency=frequency
+        ),
         integrator=integrator,
         guess=Guess(amplitude=0.1),
         name="forward_gait",
@@ -173,7 +176,8 @@ def reach(
     ``n_steps`` default 160), minimising the effort; per-step torques (N m) initialised from a gait,
     ``|f| <= max_torque``, ``|phi| <= max_steer``. Model: ``integrator`` (default ``lj.RDP(order=4)``)."""
     sb = system if system is not None else Snakeboard()
-    scale = np.asarray(max_torque, float)
+    torques = per_channel("max_torque", sb.control_names, max_torque)
+    scale = np.asarray(list(torques.values()), float)
     return make_task(
         sb,
         t_final=t_final,
@@ -182,7 +186,7 @@ def reach(
         qdot0=np.zeros(5),
         objective=(Effort(scale),),
         constraints=(TerminalPose(np.asarray(goal, float), 10.0, 10.0), TerminalRest((2,), 10.0)),
-        bounds=Bounds.of(sb, q={"phi": max_steer}, u=dict(zip(sb.control_names, max_torque))),
+        bounds=Bounds.of(sb, q={"phi": max_steer}, u=torques),
         controls=SampledControls(t_final, n_steps, scale),
         integrator=integrator,
         guess=Guess(amplitude=0.9, gait=SinusoidGait(scale, n_terms=1, frequency=frequency)),

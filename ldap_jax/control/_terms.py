@@ -21,6 +21,7 @@ from typing import Any, NamedTuple
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from .._compilation_cache import asarray
@@ -133,6 +134,12 @@ class Effort(AbstractTerm):
     scale: Float[Array, " n"] = eqx.field(converter=asarray)
     weight: Array = eqx.field(default=1.0, converter=asarray)
 
+    def __check_init__(self):
+        if jnp.ndim(self.scale) != 1:
+            raise ValueError(f"Effort: 'scale' must be 1-d (n_channels,), got shape {jnp.shape(self.scale)}")
+        _check_known("Effort", "scale", self.scale, positive=True)
+        _check_known("Effort", "weight", self.weight, positive=False)
+
     def interval(self, system, c0, c1, h):
         return self.weight * _interval_effort(c0 / self.scale, c1 / self.scale, h)
 
@@ -144,6 +151,12 @@ class Displacement(AbstractTerm):
 
     direction: Float[Array, " 2"] = eqx.field(default=(1.0, 0.0), converter=asarray)
     weight: Array = eqx.field(default=1.0, converter=asarray)
+
+    def __check_init__(self):
+        if jnp.shape(self.direction) != (2,):
+            raise ValueError(f"Displacement: 'direction' must be (2,), got shape {jnp.shape(self.direction)}")
+        _check_known("Displacement", "direction", self.direction)
+        _check_known("Displacement", "weight", self.weight)
 
     def terminal(self, system, obs, q0):
         d = displacement(obs.q, q0)
@@ -162,8 +175,24 @@ class Rotation(AbstractTerm):
 
     weight: Array = eqx.field(default=1.0, converter=asarray)
 
+    def __check_init__(self):
+        _check_known("Rotation", "weight", self.weight)
+
     def terminal(self, system, obs, q0):
         return -self.weight * (obs.q[2] - q0[2])
+
+
+def _check_known(owner: str, name: str, x: Any, *, positive: bool | None = None) -> None:
+    """A known value must be finite; ``positive=True``: every entry > 0, ``False``: >= 0."""
+    if any(isinstance(v, jax.core.Tracer) for v in jax.tree_util.tree_leaves(x)):
+        return
+    a = np.asarray(x, float)
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{owner}: '{name}' must be finite, got {a}")
+    if positive is True and not np.all(a > 0):
+        raise ValueError(f"{owner}: '{name}' must be positive, got {a}")
+    if positive is False and not np.all(a >= 0):
+        raise ValueError(f"{owner}: '{name}' must be non-negative, got {a}")
 
 
 def evaluate_terms(terms: dict, system, obs, c: Array, h: Array, q0: Array) -> dict:

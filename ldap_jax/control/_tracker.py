@@ -26,8 +26,9 @@ from jaxtyping import Array, Float
 from .._compilation_cache import jit
 from .._discrete import discretize
 from .._policy import AbstractPolicy
+from .._validation import check_positive_int, is_concrete
 from . import _export
-from ._gait_analysis import _keep, reduced_state
+from ._gait_analysis import _keep, gait_params, reduced_state
 from ._task import Task
 
 __all__ = ["GaitTracker", "gait_tracker"]
@@ -158,17 +159,22 @@ def gait_tracker(
         ``lj.simulate(system, q0, qdot0, tracker, t_final=cycles * T, ...)``.
 
     Raises:
-        ValueError: a task that is not periodic.
+        TypeError, ValueError: a task that is not periodic, a ``solution`` that is not its
+            :class:`~ldap_jax.control.Solution` or :class:`GaitParams`, weights that are not
+            positive and finite, ``sweeps`` not a positive integer. A solution that did not
+            converge gives a warning (its start is not a periodic orbit).
     """
-    if task.periodic is None:
-        raise ValueError(
-            f"gait_tracker needs a periodic task (lc.drive_gait(), lc.make_gait(...)), got {task.name!r}"
-        )
-    params = getattr(solution, "params", solution)
+    params = gait_params(task, solution, "gait_tracker")
+    for name, w in (("q_weight", q_weight), ("r_weight", r_weight)):
+        if isinstance(w, (str, bytes, bool)) or np.ndim(w) != 0:
+            raise TypeError(f"'{name}' must be a positive number, got {w!r}")
+        if is_concrete(w) and not (np.isfinite(float(w)) and float(w) > 0):
+            raise ValueError(f"'{name}' must be positive and finite, got {float(w)}")
+    sweeps = check_positive_int("sweeps", sweeps)
     # host values stay NumPy (an eager jnp.asarray is a program of its own in a new process)
     real = jnp.result_type(float)
     weights = [w if isinstance(w, jax.Array) else np.asarray(w, real) for w in (q_weight, r_weight)]
-    z_nodes, K = _tracker(task, params, *weights, int(sweeps))
+    z_nodes, K = _tracker(task, params, *weights, sweeps)
     b = task.bounds
     return GaitTracker(
         feedforward=task.controls(params),
