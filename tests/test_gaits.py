@@ -77,24 +77,24 @@ def test_floquet_analysis_names_the_jordan_structure():
 
 
 def test_drive_gait_sensitivities_match_finite_differences_of_resolves(drive):
-    """d(displacement per cycle)/d(torque bound, mass) by the implicit function theorem against
-    central differences of re-solves (rtol 1e-5)."""
+    """d(displacement per cycle)/d(torque bound, mass, period) by the implicit function theorem
+    against central differences of re-solves (rtol 1e-5)."""
     task, sol = drive
     p0 = sol.params
 
-    def distance(bound, m):
+    def distance(bound, m, period):
         b = task.bounds
         t = eqx.tree_at(
-            lambda t: (t.bounds.u_lower, t.bounds.u_upper, t.system.m),
+            lambda t: (t.bounds.u_lower, t.bounds.u_upper, t.system.m, t.t_final, t.parameterization.t_final),
             task,
-            (b.u_lower.at[0].set(-bound), b.u_upper.at[0].set(bound), m),
+            (b.u_lower.at[0].set(-bound), b.u_upper.at[0].set(bound), m, period, period),
         )
         return -lc.solve(t, p0, tol=1e-11).cost
 
-    b0, m0 = jnp.asarray(0.1), jnp.asarray(float(task.system.m))
-    grad = jax.grad(distance, argnums=(0, 1))(b0, m0)
-    for i, (x, eps) in enumerate(((b0, 1e-5), (m0, 1e-4))):
-        args = [b0, m0]
+    b0, m0, t0 = jnp.asarray(0.1), jnp.asarray(float(task.system.m)), jnp.asarray(float(task.t_final))
+    grad = jax.grad(distance, argnums=(0, 1, 2))(b0, m0, t0)
+    for i, (x, eps) in enumerate(((b0, 1e-5), (m0, 1e-4), (t0, 1e-4))):
+        args = [b0, m0, t0]
         args[i] = x + eps
         up = float(distance(*args))
         args[i] = x - eps

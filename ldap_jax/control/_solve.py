@@ -120,8 +120,8 @@ def solve(
     ``jax.grad``/``jax.jacfwd`` of the solution with respect to the task's arrays (model
     parameters, goal, bounds, a gait's period through ``task.with_options(t_final=T)``) give the
     sensitivities of the optimum by the implicit function theorem at the solution (not by
-    differentiating the iterations; the drive gait's ``d cost / d T`` equals central differences
-    of re-solves to 3e-10). Derivatives of a
+    differentiating the iterations; for the drive gait, with respect to the torque bound, the
+    mass and the period, they match central differences of re-solves). Derivatives of a
     solve that did not converge are NaN. A batch of problems under ``jax.vmap`` (a family over a
     bound, a goal, a model parameter) runs on one device, its members one after another, each for
     its own iterations; :func:`ldap_jax.shard_vmap` splits it over the devices. For a family along
