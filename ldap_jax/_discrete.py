@@ -19,15 +19,17 @@ from typing import Any
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Float
 
 from . import _tracing
 from ._compilation_cache import compiled_unless_staged
+from ._controls import Constant
 from ._linalg import solve
 from ._results import RESULTS
 from ._typing import ArrayLike
-from ._validation import cast_floats, check_array
+from ._validation import cast_floats, check_array, is_concrete, known_initial_violation
 from .integrators import RDP, AbstractIntegrator
 from .systems import AbstractSystem, Observation
 
@@ -129,10 +131,33 @@ class DiscreteDynamics(eqx.Module):
         f = jnp.asarray(self.integrator.control_nodes, u0.dtype)[:, None]
         return (1 - f) * u0[None] + f * u1[None]
 
-    @compiled_unless_staged
     def init(self, q0: ArrayLike, qdot0: ArrayLike, u0: ArrayLike) -> Float[Array, " n"]:
         """The flat state at node 0 from a configuration and a velocity on the constraints
-        (kinematic entries of ``qdot0`` are taken from ``u0``)."""
+        (kinematic entries of ``qdot0`` are taken from ``u0``).
+
+        Raises:
+            ValueError: a shape that does not fit the system; on known values, a non-finite
+                entry or a ``qdot0`` off the constraints (as :func:`ldap_jax.simulate`).
+        """
+        if is_concrete((q0, qdot0, u0)):
+            q0, qdot0, u0 = (
+                self._checked("q0", q0, "q"),
+                self._checked("qdot0", qdot0, "q"),
+                self._checked("u0", u0, "u"),
+            )
+            for name, v in (("q0", q0), ("qdot0", qdot0), ("u0", u0)):
+                if not np.all(np.isfinite(np.asarray(v))):
+                    raise ValueError(f"'{name}' must be finite, got {np.asarray(v)}")
+            viol, tol = known_initial_violation(self.system, q0, qdot0, Constant(u0), 0.0)[1:]
+            if not viol <= tol:
+                raise ValueError(
+                    f"'qdot0' violates the constraints of {type(self.system).__name__} "
+                    f"({viol:.2e} > {tol:.2e})"
+                )
+        return self._init(q0, qdot0, u0)
+
+    @compiled_unless_staged
+    def _init(self, q0, qdot0, u0):
         system = self.system
         q0, qdot0, u0 = (
             self._checked("q0", q0, "q"),
@@ -149,7 +174,12 @@ class DiscreteDynamics(eqx.Module):
     ) -> Float[Array, " n"]:
         """``x_{k+1}`` from ``x_k`` and the control values at both ends of the step (``k`` is
         accepted for time-varying use; the dynamics are autonomous in ``k`` for open-loop
-        controls, which enter only through ``u``)."""
+        controls, which enter only through ``u``).
+
+        The step's value whatever its result: a step that did not converge or crossed the
+        system's singularity returns its last iterate (an optimizer's trial point may). Use
+        :meth:`step_with_info` for the result code, or :meth:`rollout`, which marks a failed
+        step's state and every later one NaN."""
         return self.step_with_info(x, u0, u1, k)[0]
 
     @compiled_unless_staged
@@ -183,11 +213,15 @@ class DiscreteDynamics(eqx.Module):
 
     @compiled_unless_staged
     def rollout(self, x0: Float[Array, " n"], us: Float[Array, "K n_controls"]) -> Float[Array, "K n"]:
-        """States at nodes ``0 .. K-1`` from ``x0`` and the control values ``us`` at the nodes
-        (one ``lax.scan``)."""
+        """States at nodes ``0 .. K-1`` from ``x0`` and the control values ``us`` (K >= 1) at the
+        nodes (one ``lax.scan``). From a step that fails (Newton not converged, the system's
+        singularity, a non-finite state) on, the states are NaN."""
+        if jnp.ndim(us) != 2 or jnp.shape(us)[0] < 1:
+            raise ValueError(f"'us' must be (K, n_controls) with K >= 1 nodes, got shape {jnp.shape(us)}")
 
         def body(x, uu):
-            x1 = self.step(x, uu[0], uu[1])
+            x1, info = self.step_with_info(x, uu[0], uu[1])
+            x1 = jnp.where(info.result == RESULTS.successful, x1, jnp.nan)
             return x1, x1
 
         _, xs = jax.lax.scan(body, x0, (us[:-1], us[1:]))

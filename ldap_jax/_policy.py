@@ -6,7 +6,9 @@ import abc
 from collections.abc import Callable
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from ._controls import AbstractControls
@@ -72,7 +74,9 @@ class LinearPolicy(AbstractPolicy):
             ``reference`` (held piecewise constant between samples).
         reference: ``x_ref`` samples ``(T, 2 d)`` at times ``times`` (linear interpolation), or
             ``None`` for feedback around zero.
-        times: ``(T,)`` sample times of ``reference`` and a time-varying ``gain``.
+        times: ``(T,)`` sample times of ``reference`` and a time-varying ``gain``, strictly
+            increasing; before ``times[0]`` and after ``times[-1]`` both are held at their end
+            samples.
     """
 
     feedforward: AbstractControls
@@ -101,6 +105,23 @@ class LinearPolicy(AbstractPolicy):
             )
         if self.times is not None and self.reference is None:
             raise ValueError("LinearPolicy: 'times' needs 'reference' (samples of x_ref at those times)")
+        if self.times is not None and jnp.ndim(self.times) == 1:  # one policy (not a batch for vmap)
+            n_t = jnp.shape(self.times)[0]
+            ref_shape = tuple(jnp.shape(self.reference))
+            if len(ref_shape) == 2 and ref_shape[0] != n_t:
+                raise ValueError(
+                    f"LinearPolicy: 'reference' has {ref_shape[0]} samples but 'times' has {n_t} "
+                    "(one time per sample)"
+                )
+            if len(shape) == 3 and shape[0] != n_t:
+                raise ValueError(
+                    f"LinearPolicy: a time-varying 'gain' has one matrix per time: {shape[0]} for "
+                    f"{n_t} 'times'"
+                )
+            if not isinstance(self.times, jax.core.Tracer):
+                t = np.asarray(self.times)
+                if not (np.all(np.isfinite(t)) and np.all(np.diff(t) > 0)):
+                    raise ValueError(f"LinearPolicy: 'times' must be finite and strictly increasing, got {t}")
 
     @property
     def n_channels(self) -> int:

@@ -183,6 +183,16 @@ def raise_if_concrete(system, integrator, q0, qdot0, controls, t0, t_final, chec
                 f"{', '.join(bad)}"
             )
 
+    if is_concrete((system, q0)) and _has_both_views(system):
+        with jax.ensure_compile_time_eval() if in_trace() else contextlib.nullcontext():
+            mismatch, scale = (float(x) for x in _views_mismatch(system, q0))
+        if not mismatch <= 1e-9 * max(scale, 1.0):
+            raise ValueError(
+                f"'system': its constraints C(r) and its symmetry basis and connection disagree at q0: "
+                f"|C(r) [e(r), -A(r); 0, I]| = {mismatch:.3e}, where it must vanish (every velocity "
+                "xi = e(r) w - A(r) rdot must satisfy C(r) [xi; rdot] = 0)"
+            )
+
     if check_constraints and is_concrete((system, q0, qdot0, controls, t0)):
         try:
             finite_c0, viol, tol = known_initial_violation(system, q0, qdot0, controls, t0)
@@ -201,6 +211,26 @@ def raise_if_concrete(system, integrator, q0, qdot0, controls, t0, t_final, chec
                 "Build it "
                 f"on the constraint distribution, e.g. system.qdot_from_velocities(q0, v0, u_kin)."
             )
+
+
+def _has_both_views(system) -> bool:
+    """A user :class:`~ldap_jax.System` given both its constraints (the full view) and its symmetry
+    basis: the two descriptions must agree."""
+    return (
+        getattr(system, "constraints_fn", None) is not None
+        and getattr(system, "symmetry_basis_fn", None) is not None
+    )
+
+
+@eqx.filter_jit
+def _views_mismatch(system, q0) -> tuple[Array, Array]:
+    """``(max |C(r) B(r)|, max |C| max |B|)`` with ``B = [e(r), -A(r); 0, I]``, whose columns span
+    the velocities the reduced description allows (``xi = e w - A rdot``): one compiled program."""
+    r = q0[3:]
+    c, e, a = system.body_constraints(r), system.symmetry_basis(r), system.connection(r)
+    n = r.shape[0]
+    basis = jnp.block([[e, -a], [jnp.zeros((n, e.shape[1]), r.dtype), jnp.eye(n, dtype=r.dtype)]])
+    return jnp.max(jnp.abs(c @ basis)), jnp.max(jnp.abs(c)) * jnp.max(jnp.abs(basis))
 
 
 def known_initial_violation(system, q0, qdot0, controls, t0) -> tuple[bool, float, float]:

@@ -79,9 +79,10 @@ def test_discrete_dynamics_called_eagerly_compile_once_and_inline_under_jit():
         obs = dyn.observe(x1, u1)
         node = dyn.node(x1, u1)
         g = jax.grad(lambda x: jnp.sum(dyn.step(x, u0, u1)))(x0)
-    # one program per method, two for the gradient of the step (linearised, transposed) and two
-    # for this test's own sum under grad, which runs op by op; op by op the methods compiled 90
-    assert len(first) <= 8, first
+    # one program per method, two for the gradient of the step (linearised, transposed), two
+    # for this test's own sum under grad, which runs op by op, and init's check of qdot0 on the
+    # constraints (simulate's program); op by op the methods compiled 90
+    assert len(first) <= 9, first
     with compiled_programs() as again:
         x2 = dyn.step(x1, u1, u1 + 0.1, 1)
         dyn.step(x2, u1 + 0.1, u0, k=2)

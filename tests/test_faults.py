@@ -1041,7 +1041,7 @@ TASK_RAISES = {
     ),
     "dynamics observe x": (lambda: DYN.observe(np.zeros(DYN.n_state + 1), np.zeros(2)), ValueError, "'x'"),
     "dynamics node u": (lambda: DYN.node(np.zeros(DYN.n_state), np.zeros((1, 2))), ValueError, "'u'"),
-    "dynamics rollout us": (lambda: DYN.rollout(np.zeros(DYN.n_state), np.zeros(4)), ValueError, "'u0'"),
+    "dynamics rollout us": (lambda: DYN.rollout(np.zeros(DYN.n_state), np.zeros(4)), ValueError, "'us'"),
     # lc.optimize / lc.multistart: input checks (before compiling)
     "optimize n_iterations 0": (
         lambda: lc.optimize(PARK.value, PARK.init(), n_iterations=0),
@@ -1144,6 +1144,121 @@ TASK_RAISES = {
         "'n_steps'.*traced",
     ),
 }
+
+
+#: A third battery (systems, policies, the discrete dynamics, the study and the figures): each
+#: case was accepted and ran on, or failed deep inside NumPy or JAX without naming its argument.
+_TS5 = np.linspace(0.0, 2.0, 5)
+_K = np.zeros((2, 10))
+OTHER_RAISES = {
+    "policy times decreasing": (
+        lambda: lj.LinearPolicy(lj.Constant(np.zeros(2)), _K, np.zeros((5, 10)), _TS5[::-1]),
+        ValueError,
+        "'times' must be finite and strictly increasing",
+    ),
+    "policy gain per time": (
+        lambda: lj.LinearPolicy(lj.Constant(np.zeros(2)), np.stack([_K] * 3), np.zeros((5, 10)), _TS5),
+        ValueError,
+        "one matrix per time: 3 for 5",
+    ),
+    "policy reference per time": (
+        lambda: lj.LinearPolicy(lj.Constant(np.zeros(2)), _K, np.zeros((5, 10)), _TS5[:4]),
+        ValueError,
+        "'reference' has 5 samples but 'times' has 4",
+    ),
+    "dynamics init qdot0 off": (
+        lambda: DYN.init(np.zeros(5), np.asarray(SLIDE), np.zeros(2)),
+        ValueError,
+        "'qdot0' violates",
+    ),
+    "dynamics init qdot0 nan": (
+        lambda: DYN.init(np.zeros(5), np.full(5, NAN), np.zeros(2)),
+        ValueError,
+        "'qdot0' must be finite",
+    ),
+    "dynamics rollout no nodes": (
+        lambda: DYN.rollout(np.zeros(DYN.n_state), np.zeros((0, 2))),
+        ValueError,
+        "'us'.*K >= 1",
+    ),
+    "study resolutions repeated": (
+        lambda: study.StudyConfig(models=("car",), resolutions=(100, 100)),
+        ValueError,
+        "'resolutions' must be distinct",
+    ),
+    "run_study dict": (lambda: study.run_study({"models": ("car",)}), TypeError, "'config'"),
+    "runtime_ratios error": (
+        lambda: study.runtime_ratios([{"model": "car", "final_error_median": 1.0}], error="bogus"),
+        ValueError,
+        "'error'",
+    ),
+    "fitted_order lengths": (
+        lambda: lj.plotting.fitted_order([0.1, 0.05, 0.025], [1e-3, 2.5e-4]),
+        ValueError,
+        "one length",
+    ),
+    "plot_paths one trajectory": (
+        lambda: lj.plotting.plot_paths(None, CAR, np.zeros((3, 5))),
+        TypeError,
+        "'paths' must be a mapping",
+    ),
+    "plot_diagnostics empty": (lambda: lj.plotting.plot_diagnostics({}), ValueError, "'trajectories'"),
+}
+
+
+@pytest.mark.parametrize("name", list(OTHER_RAISES))
+def test_other_arguments(name):
+    make, exc, match = OTHER_RAISES[name]
+    with pytest.raises(exc, match=match):
+        make()
+
+
+def test_read_csv_refuses_a_file_that_is_not_a_study(tmp_path):
+    path = tmp_path / "other.csv"
+    path.write_text("a,b\n1,2\n")
+    with pytest.raises(ValueError, match="not a study CSV: no column \\['model', 'method', 'n_steps'\\]"):
+        study.read_csv(path)
+
+
+def test_discrete_rollout_marks_a_failed_step_and_a_nan_singularity_fails():
+    """``dyn.rollout`` of the snakeboard steered through ``cos(phi) = 0`` (phi from 1.5 at 0.5
+    rad/s, h = 0.1 s): the states equal ``dyn.step``'s up to the step that crosses it, which
+    ``step_with_info`` reports ``singular``, and are NaN from it on (finite before: the rollout
+    ran on past it). A system's singularity function that returns NaN at a finite configuration
+    is a singularity (``successful`` before); plotting that failed run warns."""
+    dyn = lj.discretize(SB, lj.RDP(), h=0.1)
+    x0 = dyn.init(jnp.array([0.0, 0.0, 0.0, 0.0, 1.5]), jnp.array([0.0, 0.0, 0.0, 0.0, 0.5]), jnp.zeros(2))
+    xs = np.asarray(dyn.rollout(x0, jnp.zeros((8, 2))))
+    bad = int(np.argmax(~np.isfinite(xs[:, 0])))
+    assert bad >= 2 and np.all(np.isnan(xs[bad:])) and np.all(np.isfinite(xs[:bad])), xs[:, 4]
+    np.testing.assert_array_equal(np.asarray(dyn.step(xs[bad - 2], jnp.zeros(2), jnp.zeros(2))), xs[bad - 1])
+    _, info = dyn.step_with_info(xs[bad - 1], jnp.zeros(2), jnp.zeros(2))
+    assert info.result == R.singular
+    sleigh = lj.chaplygin_sleigh()
+    nan_sleigh = eqx.tree_at(
+        lambda s: s.singularity_fn, sleigh, lambda p, r: jnp.nan, is_leaf=lambda x: x is None
+    )
+    traj = lj.simulate(nan_sleigh, jnp.zeros(3), jnp.zeros(3), None, t_final=1.0, n_steps=4)
+    assert traj.result == R.singular
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots()
+    with pytest.warns(UserWarning, match="failed.*singular"):
+        lj.plotting.plot_paths(ax, nan_sleigh, {"nan": traj})
+    plt.close(fig)
+
+
+def test_a_system_whose_constraints_contradict_its_symmetry_basis_is_refused():
+    """The sleigh with its constraint turned to ``v_x = 0`` while its symmetry basis still allows
+    ``v_x``: the two views of the system disagree, and each integrator went its own way
+    (``successful`` from RDP, RK4 and DLA, three different motions). Refused by name; the sleigh
+    itself runs."""
+    sleigh = lj.chaplygin_sleigh()
+    bad = eqx.tree_at(lambda s: s.constraints_fn, sleigh, lambda p, r: jnp.array([[0.0, 1.0, 0.0]], r.dtype))
+    with pytest.raises(ValueError, match="'system': its constraints C\\(r\\) and its symmetry basis"):
+        lj.simulate(bad, jnp.zeros(3), jnp.zeros(3), None, t_final=1.0, n_steps=4, diagnostics=False)
+    good = lj.simulate(sleigh, jnp.zeros(3), jnp.array([1.0, 0.0, 0.1]), None, t_final=1.0, n_steps=4)
+    assert good.result == R.successful
 
 
 @pytest.mark.parametrize("name", list(TASK_RAISES))

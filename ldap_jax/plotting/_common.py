@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+import warnings
 from collections.abc import Mapping
 from typing import Any
 
@@ -10,6 +11,7 @@ import numpy as np
 
 __all__ = [
     "as_tq",
+    "warn_if_failed",
     "tracks",
     "style_for",
     "shape_label",
@@ -95,6 +97,22 @@ def as_tq(obj: Any, t: Any = None) -> tuple[np.ndarray | None, np.ndarray]:
         if t.shape[0] != q.shape[0]:
             raise ValueError(f"times have {t.shape[0]} entries but there are {q.shape[0]} configurations")
     return t, q
+
+
+def warn_if_failed(label: str, obj: Any) -> None:
+    """A ``UserWarning`` when ``obj`` is a trajectory that failed (its ``result``; the nodes after
+    the failure are NaN and not drawn) or has no finite configuration to draw."""
+    failed = getattr(obj, "failed", None)
+    if failed is not None and np.ndim(failed) == 0 and bool(failed):
+        from .._results import RESULTS
+
+        warnings.warn(
+            f"plotting {label!r}, a trajectory that failed ({RESULTS[obj.result]}): the nodes after the "
+            "failure are NaN and are not drawn",
+            stacklevel=3,
+        )
+    elif not np.any(np.isfinite(np.asarray(getattr(obj, "q", obj), dtype=float))):
+        warnings.warn(f"plotting {label!r}: no finite configuration to draw", stacklevel=3)
 
 
 def tracks(obj: Any, labels: Any = None) -> dict[str, Any]:

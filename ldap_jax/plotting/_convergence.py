@@ -32,6 +32,10 @@ def fitted_order(h: Sequence[float], err: Sequence[float], *, floor: float = 0.0
     """Least-squares slope of ``log err`` against ``log h`` over the points with a finite error
     above ``floor`` (NaN with fewer than two such points)."""
     h, err = np.asarray(h, float), np.asarray(err, float)
+    if h.ndim != 1 or h.shape != err.shape:
+        raise ValueError(
+            f"fitted_order: 'h' and 'err' must be 1-d of one length, got {h.shape} and {err.shape}"
+        )
     ok = np.isfinite(err) & (err > floor) & np.isfinite(h) & (h > 0)
     if ok.sum() < 2:
         return float("nan")

@@ -12,7 +12,15 @@ from matplotlib.figure import Figure
 
 from .._compilation_cache import compiler_options
 from ..systems import AbstractSystem
-from ._common import REFERENCE_STYLE, finite_positive, reference_nodes, root_figure, running_max, style_for
+from ._common import (
+    REFERENCE_STYLE,
+    finite_positive,
+    reference_nodes,
+    root_figure,
+    running_max,
+    style_for,
+    warn_if_failed,
+)
 
 __all__ = ["plot_diagnostics", "plot_energy_error"]
 
@@ -86,7 +94,12 @@ def plot_diagnostics(
     Raises:
         ValueError: a trajectory without diagnostics, or a reference not sampled at its nodes.
     """
+    if not trajectories:
+        raise ValueError("'trajectories' is empty")
     groups = _groups(trajectories)
+    for trajs in groups.values():
+        for label, traj in trajs.items():
+            warn_if_failed(label, traj)
     if isinstance(references, tuple):
         references = {next(iter(groups)): references}
     references = dict(references or {})

@@ -11,7 +11,7 @@ from matplotlib.axes import Axes
 from matplotlib.lines import Line2D
 
 from ..systems import AbstractSystem
-from ._common import as_tq, finite_positive, is_reference, reference_nodes, style_for
+from ._common import as_tq, finite_positive, is_reference, reference_nodes, style_for, warn_if_failed
 from ._vehicles import Drawer, VehicleArtists, vehicle_parts, vehicle_size
 
 __all__ = ["plot_paths", "plot_position_error", "auto_scale"]
@@ -72,9 +72,15 @@ def plot_paths(
     Returns:
         ``ax``.
     """
+    if not isinstance(paths, Mapping):
+        raise TypeError(
+            f"'paths' must be a mapping label -> trajectory, e.g. {{'RDP': traj}}, got {type(paths)}"
+        )
     if not paths:
         raise ValueError("'paths' is empty")
     styles = styles or {}
+    for label, value in paths.items():
+        warn_if_failed(label, value)
     data = {label: as_tq(value) for label, value in paths.items()}
     draw = draw if draw is not None else next(iter(paths))
     if draw not in data:

@@ -99,10 +99,11 @@ class StudyConfig:
         reference_step: largest step of the RK4 reference (a converged fine-step run, also at
             least 4 times finer than the finest resolution; its own error is estimated by
             halving the step on ``reference_check`` maneuvers).
-        reference_check: maneuvers on which the reference error is estimated.
+        reference_check: maneuvers on which the reference error is estimated (at most
+            ``runs``: a larger value uses all of them).
         repeats: timed repeats (after compilation) per method and N; the median is reported.
-        timing_runs: batch size of the timed calls (the first ``timing_runs`` maneuvers; errors
-            and failures always use all ``runs``).
+        timing_runs: batch size of the timed calls (the first ``timing_runs`` maneuvers, all
+            ``runs`` when it is larger; errors and failures always use all ``runs``).
         blowup_factor: a finite run whose max position error exceeds ``blowup_factor`` x
             (1 + the reference path's extent from its start) counts as a failure (blow-up).
         zero_steer_rate: snakeboard maneuvers start with ``phidot(0) = 0`` (see
@@ -138,6 +139,8 @@ class StudyConfig:
             raise ValueError("'resolutions' must not be empty")
         for n in self.resolutions:
             _positive_int("resolutions", n)
+        if len(set(self.resolutions)) != len(self.resolutions):
+            raise ValueError(f"'resolutions' must be distinct, got {self.resolutions}")
         if not self.durations:
             raise ValueError("'durations' must not be empty")
         for t in self.durations:

@@ -26,7 +26,13 @@ def read_csv(path: str | os.PathLike) -> list[dict]:
     """Read a study CSV back (numbers as floats, ``n_steps`` etc. as ints)."""
     ints = {"n_steps", "runs", "failures", "nonfinite", "singular", "not_converged", "blowup"}
     with open(path, newline="") as fh:
-        rows = list(csv.DictReader(fh))
+        reader = csv.DictReader(fh)
+        rows = list(reader)
+        missing = [c for c in ("model", "method", "n_steps") if c not in (reader.fieldnames or ())]
+    if missing:
+        raise ValueError(
+            f"{os.fspath(path)!r} is not a study CSV: no column {missing} (its columns: {reader.fieldnames})"
+        )
     out = []
     for r in rows:
         conv = {}

@@ -138,6 +138,8 @@ def run_study(
     Returns:
         The rows, as dicts keyed by :data:`CSV_COLUMNS`.
     """
+    if not isinstance(config, StudyConfig):
+        raise TypeError(f"'config' must be an lj.study.StudyConfig, got {type(config).__name__}")
     mesh = device_mesh() if mesh is None else mesh
     log = log or (lambda s: None)
     tasks = _tasks(config)
@@ -178,6 +180,9 @@ def runtime_ratios(
     common resolutions) and at equal accuracy (runtime interpolated log-log at the error levels
     both methods reach; geometric mean over those levels; ``nan`` when their ranges do not
     overlap or failures leave too few points)."""
+    if rows and error not in rows[0]:
+        columns = sorted(k for k in rows[0] if "error" in k)
+        raise ValueError(f"'error' must be one of the rows' error columns {columns}, got {error!r}")
     out = []
     keys = sorted({(r["model"], r["duration"]) for r in rows})
     for model, dur in keys:
