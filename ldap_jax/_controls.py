@@ -276,7 +276,8 @@ class Sampled(AbstractControls):
     """Control values at uniformly spaced times, linearly interpolated in between.
 
     ``values[k]`` is the control at ``t_k = t0 + k dt`` with ``dt = (t_final - t0) / (K - 1)``;
-    outside ``[t0, t_final]`` the end values are held. Sampled with the same number of steps as
+    outside ``[t0, t_final]`` the end values are held (:func:`ldap_jax.simulate` warns when known
+    samples miss part of its run). Sampled with the same number of steps as
     :func:`ldap_jax.simulate`, the values are exactly the discrete controls at the step times
     (discrete optimal control).
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import numbers
+import warnings
 from collections.abc import Sequence
 from typing import Any
 
@@ -21,7 +22,7 @@ import numpy as np
 from jaxtyping import Array
 
 from ._compilation_cache import asarray, in_trace
-from ._controls import Constant
+from ._controls import Constant, Sampled
 from ._fields import converter_field as converter_field
 from ._policy import AbstractPolicy
 from ._results import RESULTS
@@ -182,6 +183,7 @@ def raise_if_concrete(system, integrator, q0, qdot0, controls, t0, t_final, chec
                 f"'controls' must be finite: {type(controls).__name__} holds NaN or infinite values in "
                 f"{', '.join(bad)}"
             )
+        _warn_if_samples_miss_the_run(controls, t0, t_final)
 
     if is_concrete((system, q0)) and _has_both_views(system):
         with jax.ensure_compile_time_eval() if in_trace() else contextlib.nullcontext():
@@ -211,6 +213,25 @@ def raise_if_concrete(system, integrator, q0, qdot0, controls, t0, t_final, chec
                 "Build it "
                 f"on the constraint distribution, e.g. system.qdot_from_velocities(q0, v0, u_kin)."
             )
+
+
+def _warn_if_samples_miss_the_run(controls, t0, t_final) -> None:
+    """A ``UserWarning`` when known :class:`~ldap_jax.Sampled` controls span a window that misses
+    part of the run ``[t0, t_final]`` by more than 1e-9 of the run's length: there they are held
+    at their end values, which is rarely what was meant (samples made for another horizon)."""
+    if not isinstance(controls, Sampled) or t_final is None:
+        return
+    leaves = (controls.t0, controls.t_final, t0, t_final)
+    if not is_concrete(leaves) or any(np.ndim(x) for x in leaves):
+        return
+    a, b, r0, r1 = (float(np.asarray(x)) for x in leaves)
+    slack = 1e-9 * abs(r1 - r0)
+    if a > r0 + slack or b < r1 - slack:
+        warnings.warn(
+            f"the sampled controls span [{a:g}, {b:g}] s but the run spans [{r0:g}, {r1:g}] s: outside "
+            "their span they are held at their end values (samples for another horizon?)",
+            stacklevel=4,
+        )
 
 
 def _has_both_views(system) -> bool:

@@ -1248,6 +1248,21 @@ def test_discrete_rollout_marks_a_failed_step_and_a_nan_singularity_fails():
     plt.close(fig)
 
 
+def test_sampled_controls_that_miss_part_of_the_run_warn():
+    """Samples over [0, 1] s or [5, 7] s driving a run over [0, 2] s are held at their end values
+    where they miss it (a silent ``successful`` before); samples that cover the run do not warn."""
+    import warnings
+
+    ramp = np.stack([np.linspace(0.0, 1.0, N + 1), np.full(N + 1, 0.1)], axis=1)
+    run = functools.partial(lj.simulate, CAR, Z5, Z5, t_final=2.0, n_steps=N, diagnostics=False)
+    for window in (dict(t_final=1.0), dict(t_final=7.0, t0=5.0)):
+        with pytest.warns(UserWarning, match="held at their end values"):
+            run(lj.Sampled(ramp, **window))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        run(lj.Sampled(ramp, 2.0))
+
+
 def test_a_system_whose_constraints_contradict_its_symmetry_basis_is_refused():
     """The sleigh with its constraint turned to ``v_x = 0`` while its symmetry basis still allows
     ``v_x``: the two views of the system disagree, and each integrator went its own way
