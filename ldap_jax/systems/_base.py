@@ -269,14 +269,15 @@ class AbstractSystem(eqx.Module):
         """A scalar that vanishes where the reduced description breaks down (default 1: never).
 
         Rollouts report a failure when it falls below ``eps**0.25`` in magnitude, changes sign
-        within a step, or is NaN at a finite configuration."""
+        within a step, or is NaN (at a finite state)."""
         return jnp.ones((), q.dtype)
 
     def singular(self, q: Array, q_prev: Array | None = None) -> Bool[Array, ""]:
-        """True at (or, given ``q_prev``, across) a singularity of the reduced description; a NaN
-        ``singularity(q)`` at a finite ``q`` counts as one (a NaN ``q`` is a non-finite state)."""
+        """True at (or, given ``q_prev``, across) a singularity of the reduced description, or
+        where ``singularity(q)`` is NaN (a step reports a non-finite state first, so a NaN there
+        names the description)."""
         s = self.singularity(q)
-        out = (jnp.abs(s) < jnp.finfo(q.dtype).eps ** 0.25) | (jnp.isnan(s) & jnp.all(jnp.isfinite(q)))
+        out = ~(jnp.abs(s) >= jnp.finfo(q.dtype).eps ** 0.25)
         if q_prev is not None:
             out = out | (s * self.singularity(q_prev) < 0)
         return out
