@@ -268,16 +268,14 @@ class AbstractSystem(eqx.Module):
     def singularity(self, q: Array) -> Array:
         """A scalar that vanishes where the reduced description breaks down (default 1: never).
 
-        Rollouts report a failure when it falls below ``eps**0.25`` in magnitude, changes sign
-        within a step, or is NaN (at a finite state)."""
+        Rollouts report a failure when it falls below ``eps**0.25`` in magnitude or changes sign
+        within a step."""
         return jnp.ones((), q.dtype)
 
     def singular(self, q: Array, q_prev: Array | None = None) -> Bool[Array, ""]:
-        """True at (or, given ``q_prev``, across) a singularity of the reduced description, or
-        where ``singularity(q)`` is NaN (a step reports a non-finite state first, so a NaN there
-        names the description)."""
+        """True at (or, given ``q_prev``, across) a singularity of the reduced description."""
         s = self.singularity(q)
-        out = ~(jnp.abs(s) >= jnp.finfo(q.dtype).eps ** 0.25)
+        out = jnp.abs(s) < jnp.finfo(q.dtype).eps ** 0.25
         if q_prev is not None:
             out = out | (s * self.singularity(q_prev) < 0)
         return out

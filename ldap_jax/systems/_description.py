@@ -77,7 +77,8 @@ class System(AbstractSystem):
         kinematic: per shape coordinate, True where its velocity is prescribed by a control
             (like the car's steering) instead of driven by a force. Default: all force-driven.
         shape_names: names of the shape coordinates (default ``r1, r2, ...``).
-        singularity: optional ``s(r) -> scalar`` vanishing where the description breaks down.
+        singularity: optional ``s(r) -> scalar`` vanishing where the description breaks down
+            (NaN counts as a singularity).
         dissipation: optional Rayleigh dissipation function ``R(r, u, xi) -> scalar`` (``>= 0``,
             e.g. ``c v_x^2 / 2`` for a viscous rolling resistance): friction forces
             ``f_r = -d_u R`` on the shape and ``F = -d_xi R`` on the group (a body-frame covector)
@@ -266,9 +267,12 @@ class System(AbstractSystem):
         return jnp.where(kin, 0.0, -f_r), -F
 
     def singularity(self, q):
+        """The user's ``singularity(r)``, with NaN taken as 0: a singularity (at a NaN state the
+        step reports the non-finite state first)."""
         if self.singularity_fn is None:
             return jnp.ones((), q.dtype)
-        return self._call(self.singularity_fn, q[3:])
+        s = self._call(self.singularity_fn, q[3:])
+        return jnp.where(jnp.isnan(s), jnp.zeros_like(s), s)
 
     # ------------------------------------------------------------ full view
     def body_constraints(self, r):
