@@ -27,6 +27,7 @@ from __future__ import annotations
 import functools
 import gc
 import inspect
+import math
 import os
 import sys
 from collections.abc import Callable
@@ -112,6 +113,8 @@ def trim_compilation_cache(threshold: float = 0.5) -> bool:
         ...     ...  # lj.simulate(..., n_steps=n_steps)
         ...     _ = lj.trim_compilation_cache()
     """
+    if isinstance(threshold, bool) or not isinstance(threshold, (int, float, np.floating, np.integer)):
+        raise TypeError(f"'threshold' must be a number in (0, 1], got {threshold!r}")
     if not 0.0 < threshold <= 1.0:
         raise ValueError(f"'threshold' must be in (0, 1], got {threshold}")
     usage = memory_mappings()
@@ -194,7 +197,8 @@ def enable_compilation_cache(
     not trace them again (``LDAP_JAX_EXPORT=0``: not).
 
     Args:
-        path: cache directory (default ``$LDAP_JAX_CACHE`` or ``~/.cache/ldap_jax/xla``); created
+        path: cache directory (default ``$LDAP_JAX_CACHE`` or ``~/.cache/ldap_jax/xla``; a relative
+            path is taken from the working folder now, and the absolute path returned); created
             if missing.
         min_compile_seconds: only programs that took at least this long to compile are stored
             (default 0.05 s: a task's checks and default guess are such programs; stored, a warm
@@ -214,9 +218,17 @@ def enable_compilation_cache(
             os.path.expanduser("~"), ".cache", "ldap_jax", "xla"
         )
     path = os.fspath(path)
+    if not path.strip():
+        raise ValueError("'path' must name a folder, got an empty path")
+    seconds = float(min_compile_seconds)
+    if not (seconds >= 0 and math.isfinite(seconds)):
+        raise ValueError(
+            f"'min_compile_seconds' must be non-negative and finite, got {min_compile_seconds!r}"
+        )
+    path = os.path.abspath(path)  # JAX reads a relative path against the working folder of each write
     os.makedirs(path, exist_ok=True)
     jax.config.update("jax_compilation_cache_dir", path)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_seconds))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", seconds)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     return path
 

@@ -79,6 +79,9 @@ def check_save(save: Any, n_steps: int) -> SavePlan:
             "concrete JAX array; they fix the output's shape), got a traced array"
         )
     if isinstance(save, (Sequence, np.ndarray, jax.Array)) and not isinstance(save, (str, bytes)):
+        items = list(save) if isinstance(save, Sequence) else [np.asarray(save)]
+        if any(isinstance(i, (bool, np.bool_)) or np.asarray(i).dtype == np.bool_ for i in items):
+            raise ValueError(f"'save': node indices must be integers (not a boolean mask), got {save!r}")
         try:
             values = np.asarray(save, dtype=float).ravel()
         except (TypeError, ValueError) as err:

@@ -83,7 +83,17 @@ def _backend_started() -> bool:
 def device_mesh(devices: Sequence[jax.Device] | None = None) -> Mesh:
     """A one-axis mesh ``("batch",)`` over ``devices`` (default: all of ``jax.devices()``, i.e.
     every GPU of the node, or of every host after ``jax.distributed.initialize()``)."""
-    devices = jax.devices() if devices is None else list(devices)
+    if devices is not None:
+        if isinstance(devices, (str, bytes, jax.Device)):
+            raise TypeError(
+                f"'devices' must be a sequence of jax devices (e.g. jax.devices()), got {devices!r}"
+            )
+        devices = list(devices)
+        if not devices or not all(isinstance(d, jax.Device) for d in devices):
+            raise ValueError(f"'devices' must be a non-empty sequence of jax devices, got {devices!r}")
+        if len(set(devices)) != len(devices):
+            raise ValueError(f"'devices' must be distinct, got {devices!r}")
+    devices = jax.devices() if devices is None else devices
     return Mesh(np.asarray(devices), (_AXIS,))
 
 
@@ -176,7 +186,7 @@ def shard_vmap(
         in_axes: ``0`` (every positional argument is batched along its leading axis), ``None``
             (none is), or one of ``0``/``None`` per positional argument (``None``: the same for
             every member, e.g. a task or a model).
-        mesh: a mesh with one axis (default: all devices).
+        mesh: a mesh with one axis named ``"batch"`` (:func:`device_mesh`; default: all devices).
 
     Returns:
         A function of the same positional arguments, returning ``fn``'s outputs with a leading
@@ -191,8 +201,10 @@ def shard_vmap(
         >>> solve_all = lj.shard_vmap(lambda g: lc.solve(task.with_options(goal=g)).params)
         >>> params = solve_all(goals)  # goals (B, 3)
     """
-    if mesh is not None and len(mesh.axis_names) != 1:
-        raise ValueError(f"'mesh' must have one axis, got {mesh.axis_names}")
+    if mesh is not None and not isinstance(mesh, Mesh):
+        raise TypeError(f"'mesh' must be a jax.sharding.Mesh (lj.device_mesh(devices)), got {type(mesh)}")
+    if mesh is not None and tuple(mesh.axis_names) != (_AXIS,):
+        raise ValueError(f"'mesh' must have one axis named {_AXIS!r} (lj.device_mesh), got {mesh.axis_names}")
 
     @functools.wraps(fn)
     def batched(*args):

@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import os
 
-__all__ = ["positive_int"]
+__all__ = ["positive_int", "out_dir"]
 
 
 def positive_int(text: str) -> int:
@@ -16,3 +17,12 @@ def positive_int(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}")
     return value
+
+
+def out_dir(text: str) -> str:
+    """An ``argparse`` type: an output folder, made if needed; not empty, not an existing file."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("must name a folder, got an empty path")
+    if os.path.exists(text) and not os.path.isdir(text):
+        raise argparse.ArgumentTypeError(f"{text!r} exists and is not a folder")
+    return text

@@ -34,6 +34,8 @@ import sys
 import time
 from collections.abc import Callable
 
+from _args import out_dir
+
 SCRIPTS = pathlib.Path(__file__).resolve().parent
 
 
@@ -313,7 +315,7 @@ def summary(done: list[dict], out: pathlib.Path, total: float, cache: str | None
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--full", action="store_true", help="the paper-size versions (hours)")
-    p.add_argument("--out", default="results", help="output folder (default: results)")
+    p.add_argument("--out", type=out_dir, default="results", help="output folder (default: results)")
     p.add_argument("--only", default=None, help="comma-separated stage names (default: all; see --list)")
     p.add_argument("--no-cache", action="store_true", help="without JAX's persistent compilation cache")
     p.add_argument("--list", action="store_true", help="list the stages and their commands, and exit")

@@ -203,6 +203,13 @@ def report(label: str, r: dict, top: int) -> None:
         print(f"    {total:6.2f} s  {name[:60]:60s} {parts}")
 
 
+def lc_tasks():
+    """``ldap_jax.control`` (imported when a flag needs it)."""
+    from ldap_jax import control
+
+    return control
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
@@ -218,6 +225,24 @@ def main() -> None:
     p.add_argument("--quick", action="store_true", help="with --program: compile the quick tier's program")
     p.add_argument("--outputs", default=None, help="with --program: write the run's outputs (.npz) here")
     args = p.parse_args()
+    if args.runs < 0:
+        p.error(f"argument --runs: must be a non-negative integer, got {args.runs}")
+    if args.top < 1:
+        p.error(f"argument --top: must be a positive integer, got {args.top}")
+    if not args.program:
+        for flag in ("hlo", "quick", "outputs"):
+            if getattr(args, flag) not in (None, False):
+                p.error(f"argument --{flag}: only with --program")
+    if args.no_cache and args.cache is not None:
+        p.error("argument --cache: not with --no-cache")
+    if args.cache is not None and os.path.exists(args.cache) and not os.path.isdir(args.cache):
+        p.error(f"argument --cache: {args.cache!r} exists and is not a folder")
+    for flag in ("json", "hlo", "outputs"):
+        path = getattr(args, flag)
+        if path is not None and not os.path.isdir(os.path.dirname(os.path.abspath(path))):
+            p.error(f"argument --{flag}: the folder of {path!r} does not exist")
+    if args.program and not callable(getattr(lc_tasks(), args.task, None)):
+        p.error(f"argument --task: not a task of ldap_jax.control, got {args.task!r}")
     if args.program:
         program(args.task, args.hlo, args.quick, args.outputs)
         return

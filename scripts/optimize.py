@@ -240,6 +240,8 @@ def parse_args(argv=None):
             f"argument --solver: solve needs per-step controls; {args.task} is a periodic gait: "
             "use --solver optimize"
         )
+    if args.family is not None and args.compare_integrators:
+        parser.error("argument --compare-integrators: not with --family (one integrator's solves)")
     if args.family is not None and args.solver != "solve":
         parser.error(
             f"argument --family: a family is solved by lc.solve; {args.task} is solved by lc.optimize"
@@ -332,11 +334,11 @@ def solve_family(args) -> int:
 def main(argv=None) -> int:
     args = parse_args(argv)
     _load()
+    if args.cache:
+        lj.enable_compilation_cache(args.cache)
     if args.family is not None:
         return solve_family(args)
     out = pathlib.Path(args.out)
-    if args.cache:
-        lj.enable_compilation_cache(args.cache)
     kw = {} if args.n_steps is None else {"n_steps": args.n_steps}
     task = lc.TASKS[(args.model, args.task)](integrator=INTEGRATORS[args.integrator](), **kw)
     solver = args.solver

@@ -36,6 +36,25 @@ import pathlib
 import time
 from concurrent.futures import ThreadPoolExecutor
 
+from _args import out_dir, positive_int
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    """The flags, checked before JAX is imported (a bad flag costs no import)."""
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--quick", action="store_true", help="small sizes (a 10^4-step long run)")
+    parser.add_argument("--out", type=out_dir, default="results", help="output folder")
+    parser.add_argument("--seed", type=int, default=3, help="seed of the random maneuvers")
+    parser.add_argument("--jobs", type=positive_int, default=2, help="programs compiled at once (default 2)")
+    parser.add_argument("--no-cache", action="store_true", help="no persistent compilation cache")
+    return parser.parse_args(argv)
+
+
+if __name__ == "__main__":
+    ARGS = parse_args()
+
 import jax
 
 jax.config.update("jax_enable_x64", True)
@@ -218,16 +237,7 @@ def save(fig, path: pathlib.Path, written: list) -> None:
     written.append(path)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    parser.add_argument("--quick", action="store_true", help="small sizes (a 10^4-step long run)")
-    parser.add_argument("--out", default="results", help="output folder")
-    parser.add_argument("--seed", type=int, default=3, help="seed of the random maneuvers")
-    parser.add_argument("--jobs", type=int, default=2, help="programs compiled at once (default 2)")
-    parser.add_argument("--no-cache", action="store_true", help="no persistent compilation cache")
-    args = parser.parse_args()
+def main(args: argparse.Namespace) -> None:
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     if not args.no_cache:
@@ -440,4 +450,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    main(ARGS)

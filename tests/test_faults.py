@@ -1203,6 +1203,33 @@ OTHER_RAISES = {
         "'paths' must be a mapping",
     ),
     "plot_diagnostics empty": (lambda: lj.plotting.plot_diagnostics({}), ValueError, "'trajectories'"),
+    # a fourth battery (devices, the cache, save, multistart)
+    "device_mesh string": (lambda: lj.device_mesh("cpu"), TypeError, "'devices'"),
+    "device_mesh empty": (lambda: lj.device_mesh([]), ValueError, "'devices'.*non-empty"),
+    "device_mesh repeated": (lambda: lj.device_mesh(jax.devices()[:1] * 2), ValueError, "distinct"),
+    "shard_vmap mesh list": (lambda: lj.shard_vmap(jnp.sin, mesh=jax.devices()), TypeError, "'mesh'"),
+    "shard_vmap mesh axis": (
+        lambda: lj.shard_vmap(jnp.sin, mesh=jax.sharding.Mesh(np.asarray(jax.devices()), ("x",))),
+        ValueError,
+        "'mesh'.*'batch'",
+    ),
+    "cache path empty": (lambda: lj.enable_compilation_cache(""), ValueError, "'path'"),
+    "cache min seconds": (
+        lambda: lj.enable_compilation_cache("unused", min_compile_seconds=NAN),
+        ValueError,
+        "'min_compile_seconds'",
+    ),
+    "trim threshold str": (lambda: lj.trim_compilation_cache("0.5"), TypeError, "'threshold'"),
+    "save mask": (
+        lambda: lj.simulate(CAR, Z5, Z5, None, t_final=1.0, n_steps=N, save=[False, True]),
+        ValueError,
+        "boolean mask",
+    ),
+    "multistart no starts": (
+        lambda: lc.multistart(lambda p: jnp.sum(p**2), jnp.zeros((0, 2)), n_iterations=2),
+        ValueError,
+        "'params0' must be a batch of starts",
+    ),
 }
 
 
@@ -1211,6 +1238,17 @@ def test_other_arguments(name):
     make, exc, match = OTHER_RAISES[name]
     with pytest.raises(exc, match=match):
         make()
+
+
+def test_a_relative_cache_path_is_made_absolute(tmp_path, monkeypatch):
+    """JAX read a relative cache folder against the working folder of each write: the library
+    makes it absolute when it is enabled (JAX's configuration recorded, not changed)."""
+    calls = []
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(jax.config, "update", lambda *args: calls.append(args))
+    path = lj.enable_compilation_cache("relcache")
+    assert path == str(tmp_path / "relcache") and os.path.isdir(path)
+    assert ("jax_compilation_cache_dir", path) in calls
 
 
 def test_read_csv_refuses_a_file_that_is_not_a_study(tmp_path):
@@ -1444,9 +1482,21 @@ SCRIPT_CASES = {
     "time_notebooks 99": ("time_notebooks.py", ["99"], "notebooks"),
     "time_notebooks 0": ("time_notebooks.py", ["0"], "notebooks"),
     "time_notebooks --cache file": ("time_notebooks.py", ["01", "--cache", FILE], "--cache"),
+    # a third battery: each ran on (a whole quick run, or files written into the working folder)
+    "quickstart --jobs 0": ("quickstart.py", ["--jobs", "0"], "--jobs"),
+    "quickstart --out empty": ("quickstart.py", ["--out", ""], "--out"),
+    "demo --out file": ("demo.py", ["--out", FILE, "--only", "quickstart"], "--out"),
+    "optimize --family --compare-integrators": (
+        "optimize.py",
+        ["--model", "car", "--task", "parallel_park", "--family", "2", "--compare-integrators"],
+        "--compare-integrators",
+    ),
+    "first_solve --runs -1": ("first_solve.py", ["--runs=-1"], "--runs"),
+    "first_solve --hlo without --program": ("first_solve.py", ["--hlo", "h.txt"], "--hlo"),
+    "first_solve --cache with --no-cache": ("first_solve.py", ["--no-cache", "--cache", "c"], "--cache"),
 }
 #: the scripts that write no files (no ``--out``)
-NO_OUT = {"time_notebooks.py"}
+NO_OUT = {"time_notebooks.py", "first_solve.py"}
 
 
 @pytest.mark.parametrize("name", list(SCRIPT_CASES))

@@ -18,6 +18,7 @@ from typing import Any
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from jaxtyping import Array, Bool, Float, PyTree
 
@@ -302,6 +303,12 @@ def multistart(
     """
     _check_positive_int("n_iterations", n_iterations)
     tol = _check_problem(loss_fn, params0, tol)
+    starts = {np.shape(x)[0] if np.ndim(x) else None for x in jax.tree_util.tree_leaves(params0)}
+    if None in starts or len(starts) != 1 or 0 in starts:
+        raise ValueError(
+            "'params0' must be a batch of starts: every leaf with the same leading size >= 1, got "
+            f"leading sizes {sorted(starts, key=str)}"
+        )
     optimizer = _as_extra_args(optimizer)
     best, best_loss, losses, aux, done = _run_multistart(
         loss_fn, optimizer, params0, n_iterations, _traced(tol)
