@@ -1149,6 +1149,7 @@ TASK_RAISES = {
 #: A third battery (systems, policies, the discrete dynamics, the study and the figures): each
 #: case was accepted and ran on, or failed deep inside NumPy or JAX without naming its argument.
 _TS5 = np.linspace(0.0, 2.0, 5)
+E2 = np.eye(3, 2)
 _K = np.zeros((2, 10))
 OTHER_RAISES = {
     "policy times decreasing": (
@@ -1203,6 +1204,11 @@ OTHER_RAISES = {
         "'paths' must be a mapping",
     ),
     "plot_diagnostics empty": (lambda: lj.plotting.plot_diagnostics({}), ValueError, "'trajectories'"),
+    "System lagrangian int": (
+        lambda: lj.System(0, lambda r, u, xi: jnp.array(1), lambda r: jnp.zeros((3, 0)), lambda r: E2),
+        TypeError,
+        "lagrangian.*floating scalar",
+    ),
     # a fourth battery (devices, the cache, save, multistart)
     "device_mesh string": (lambda: lj.device_mesh("cpu"), TypeError, "'devices'"),
     "device_mesh empty": (lambda: lj.device_mesh([]), ValueError, "'devices'.*non-empty"),
@@ -1283,7 +1289,7 @@ def test_discrete_rollout_marks_a_failed_step_and_a_nan_singularity_fails():
     fig, ax = plt.subplots()
     with pytest.warns(UserWarning, match="failed.*singular"):
         lj.plotting.plot_paths(ax, nan_sleigh, {"nan": traj})
-    plt.close(fig)
+    plt.close("all")
 
 
 def test_sampled_controls_that_miss_part_of_the_run_warn():

@@ -17,7 +17,7 @@ from matplotlib.lines import Line2D
 from PIL import Image
 
 from ..systems import AbstractSystem
-from ._common import as_tq, is_reference, style_for, tracks
+from ._common import as_tq, is_reference, style_for, tracks, warn_if_failed
 from ._paths import auto_scale
 from ._vehicles import Drawer, VehicleArtists, vehicle_parts, vehicle_size
 
@@ -157,6 +157,7 @@ def animate(
         raise ValueError("nothing to animate")
     data = {}
     for label, obj in named.items():
+        warn_if_failed(label, obj)
         tt, q = as_tq(obj)
         if tt is None and t is not None:
             tt, q = as_tq(q, t)

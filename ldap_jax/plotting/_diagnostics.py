@@ -212,6 +212,7 @@ def plot_energy_error(
         fig, ax = plt.subplots(figsize=(6.4, 4.0), layout="constrained")
     for i, (label, traj) in enumerate(trajs.items()):
         _needs_diagnostics(label, traj)
+        warn_if_failed(label, traj)
         t = np.asarray(traj.t)
         err = np.abs(np.asarray(traj.energy_balance))
         if relative:

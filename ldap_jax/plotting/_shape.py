@@ -12,7 +12,7 @@ from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 
 from ..systems import AbstractSystem
-from ._common import shape_label
+from ._common import shape_label, warn_if_failed
 from ._paths import auto_scale
 from ._vehicles import Drawer, VehicleArtists, vehicle_parts
 
@@ -75,6 +75,7 @@ def plot_shape_loop(
     n = system.n_shape
     if n < 1:
         raise ValueError("plot_shape_loop needs a system with shape coordinates (n_shape >= 1)")
+    warn_if_failed("traj", traj)
     t = np.asarray(traj.t, float)
     q = np.asarray(traj.q, float)
     qdot = np.asarray(traj.qdot, float)

@@ -190,12 +190,10 @@ class System(AbstractSystem):
         dtype = jnp.result_type(float)
         r = jax.ShapeDtypeStruct((self.n,), dtype)
         xi = jax.ShapeDtypeStruct((3,), dtype)
-        _check_shape(
-            "a scalar",
-            "lagrangian(r, u, xi)",
-            _shape_of("lagrangian(r, u, xi)", call(lagrangian), r, r, xi),
-            (),
-        )
+        lag = _shape_of("lagrangian(r, u, xi)", call(lagrangian), r, r, xi)
+        _check_shape("a scalar", "lagrangian(r, u, xi)", lag, ())
+        if not jnp.issubdtype(lag.dtype, jnp.floating):  # it is differentiated
+            raise TypeError(f"System: lagrangian(r, u, xi) must return a floating scalar, got {lag.dtype}")
         _check_shape("3 x n", "connection(r)", _shape_of("connection(r)", call(connection), r), (3, self.n))
         if symmetry_basis is None:
             self.n_symmetries = 0
