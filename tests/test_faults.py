@@ -1204,6 +1204,21 @@ OTHER_RAISES = {
         "'paths' must be a mapping",
     ),
     "plot_diagnostics empty": (lambda: lj.plotting.plot_diagnostics({}), ValueError, "'trajectories'"),
+    "runtime_ratios pair missing": (
+        lambda: study.runtime_ratios([{"model": "car", "method": "rdp"}], pairs=(("rdp", "rk9"),)),
+        ValueError,
+        "'pairs'.*'rk9'",
+    ),
+    "optimize vector loss": (
+        lambda: lc.optimize(lambda p: (p - 3.0) ** 2, jnp.zeros(2), n_iterations=2),
+        TypeError,
+        "'loss_fn' must return a real scalar loss",
+    ),
+    "optimize three outputs": (
+        lambda: lc.optimize(lambda p: (jnp.sum(p**2), 1.0, 2.0), jnp.zeros(2), n_iterations=2),
+        TypeError,
+        "'loss_fn'",
+    ),
     "System lagrangian int": (
         lambda: lj.System(0, lambda r, u, xi: jnp.array(1), lambda r: jnp.zeros((3, 0)), lambda r: E2),
         TypeError,

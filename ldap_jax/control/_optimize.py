@@ -9,6 +9,7 @@ hard constraints and second-order convergence use :func:`~ldap_jax.control.solve
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import math
 import warnings
@@ -156,6 +157,30 @@ def _traced(tol: float) -> Array:
     return jnp.asarray(tol, jnp.result_type(float))
 
 
+#: JAX's errors when a loss is not a scalar or its aux is not a pytree of arrays
+_LOSS_ERRORS = (
+    "Gradient only defined for scalar-output",
+    "two-element tuple",
+    "is not a valid JAX type",
+    "traced for scan returned a value of type",
+)
+
+
+@contextlib.contextmanager
+def _loss_errors():
+    """JAX's error from a loss of the wrong kind, re-raised naming ``loss_fn``."""
+    try:
+        yield
+    except TypeError as err:
+        if not any(k in str(err) for k in _LOSS_ERRORS):
+            raise
+        first = str(err).splitlines()[0]
+        raise TypeError(
+            "'loss_fn' must return a real scalar loss, or a pair (loss, aux) with aux a pytree of arrays; "
+            f"JAX: {first}"
+        ) from err
+
+
 def _check_positive_int(name: str, x: Any) -> int:
     return check_positive_int(name, x)
 
@@ -250,7 +275,8 @@ def optimize(
 
         bar = tqdm(total=n_iterations, desc=description)
     for _ in range(n_iterations // chunk):
-        carry, (losses, aux, stopped) = _run_chunk(loss_fn, optimizer, carry, chunk, _traced(tol))
+        with _loss_errors():
+            carry, (losses, aux, stopped) = _run_chunk(loss_fn, optimizer, carry, chunk, _traced(tol))
         pieces.append((losses, aux, stopped))
         if bar is not None:
             bar.update(chunk)
@@ -310,9 +336,10 @@ def multistart(
             f"leading sizes {sorted(starts, key=str)}"
         )
     optimizer = _as_extra_args(optimizer)
-    best, best_loss, losses, aux, done = _run_multistart(
-        loss_fn, optimizer, params0, n_iterations, _traced(tol)
-    )
+    with _loss_errors():
+        best, best_loss, losses, aux, done = _run_multistart(
+            loss_fn, optimizer, params0, n_iterations, _traced(tol)
+        )
     never = ~jnp.isfinite(best_loss)
     if bool(jnp.any(never)):
         warnings.warn(

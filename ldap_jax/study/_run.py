@@ -163,23 +163,33 @@ def run_study(
     return [rows[i] for i in range(len(tasks))]
 
 
+#: The pairs :func:`runtime_ratios` compares by default (those whose methods the rows hold).
+DEFAULT_PAIRS: tuple[tuple[str, str], ...] = (
+    ("rdp", "rk2"),
+    ("rdp", "rk4"),
+    ("rdp4", "rk4"),
+    ("rdp6", "rk4"),
+    ("gni", "rdp"),
+    ("dla", "rdp"),
+)
+
+
 def runtime_ratios(
     rows: list[dict],
-    pairs: Sequence[tuple[str, str]] = (
-        ("rdp", "rk2"),
-        ("rdp", "rk4"),
-        ("rdp4", "rk4"),
-        ("rdp6", "rk4"),
-        ("gni", "rdp"),
-        ("dla", "rdp"),
-    ),
+    pairs: Sequence[tuple[str, str]] = DEFAULT_PAIRS,
     *,
     error: str = "final_error_median",
 ) -> list[dict]:
     """Runtime ratios ``a / b`` per model and duration: at equal N (geometric mean over the
     common resolutions) and at equal accuracy (runtime interpolated log-log at the error levels
     both methods reach; geometric mean over those levels; ``nan`` when their ranges do not
-    overlap or failures leave too few points)."""
+    overlap or failures leave too few points). The default pairs are those of
+    :data:`DEFAULT_PAIRS` whose methods the rows hold; pairs given by name must all be there."""
+    if pairs is not DEFAULT_PAIRS:  # pairs asked for by name: each method must be in the rows
+        have = {r["method"] for r in rows}
+        missing = sorted({m for pair in pairs for m in pair} - have)
+        if missing:
+            raise ValueError(f"'pairs': no rows of the methods {missing}; the rows hold {sorted(have)}")
     if rows and error not in rows[0]:
         columns = sorted(k for k in rows[0] if "error" in k)
         raise ValueError(f"'error' must be one of the rows' error columns {columns}, got {error!r}")
