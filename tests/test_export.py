@@ -64,6 +64,9 @@ def test_reloaded_export_gives_the_traced_solution(exports):
     task = lc.parallel_park(integrator=lj.RDP(), n_steps=40)
     reference = _traced(task)
     first = lc.solve(task)
+    # an executable is written by the thread that compiled it, after the program is handed over
+    # (through a temporary file beside it): listed mid-write, the folder held that temporary file
+    _join_background_compilations()
     files = sorted(p.suffix for p in exports.iterdir())
     # the run's and the finish's exports, and the executable of each that this process compiled
     # (none of those JAX's cache already held: which, depends on the tests run before)
