@@ -1095,7 +1095,7 @@ TASK_RAISES = {
     "rest index out of range": (
         lambda: _make_task(constraints=(lc.TerminalRest((7,)),)),
         ValueError,
-        "TerminalRest indices \\[7\\] out of range: Car has 1",
+        "TerminalRest: 'indices' \\[7\\] out of range: Car has 1",
     ),
     "rest index float": (lambda: lc.InitialRest((1.5,)), TypeError, "'indices'"),
     "rest weight nan": (lambda: lc.TerminalRest((0,), weight=NAN), ValueError, "'weight'"),
@@ -1254,13 +1254,6 @@ OTHER_RAISES = {
 }
 
 
-@pytest.mark.parametrize("name", list(OTHER_RAISES))
-def test_other_arguments(name):
-    make, exc, match = OTHER_RAISES[name]
-    with pytest.raises(exc, match=match):
-        make()
-
-
 def test_a_relative_cache_path_is_made_absolute(tmp_path, monkeypatch):
     """JAX read a relative cache folder against the working folder of each write: the library
     makes it absolute when it is enabled (JAX's configuration recorded, not changed)."""
@@ -1335,9 +1328,14 @@ def test_a_system_whose_constraints_contradict_its_symmetry_basis_is_refused():
     assert good.result == R.successful
 
 
-@pytest.mark.parametrize("name", list(TASK_RAISES))
-def test_control_arguments(name):
-    make, exc, match = TASK_RAISES[name]
+#: every construction-time case: the control API's, then the others'
+CONSTRUCTION_RAISES = {**TASK_RAISES, **OTHER_RAISES}
+assert len(CONSTRUCTION_RAISES) == len(TASK_RAISES) + len(OTHER_RAISES)  # no name in both
+
+
+@pytest.mark.parametrize("name", list(CONSTRUCTION_RAISES))
+def test_construction_arguments(name):
+    make, exc, match = CONSTRUCTION_RAISES[name]
     with pytest.raises(exc, match=match):
         make()
 

@@ -22,6 +22,7 @@ from ._constraints import (
     Periodic,
     TerminalPose,
     TerminalRest,
+    check_rest_indices,
 )
 from ._parameterizations import AbstractParameterization, SampledControls
 from ._task import Guess, Task
@@ -157,7 +158,7 @@ def make_task(
 def _check_pieces(task: Task) -> None:
     """Shapes the pieces must agree on: the effort's scale and the explicit guess against the
     channels and nodes, the rest conditions' indices against the minimal velocities."""
-    m, n_v = task.system.n_controls, task.system.n_velocities
+    m = task.system.n_controls
     for term in task.objective:
         if isinstance(term, Effort) and jnp.shape(term.scale) not in ((m,), (1,)):
             raise ValueError(
@@ -166,12 +167,7 @@ def _check_pieces(task: Task) -> None:
             )
     for con in task.constraints:
         if isinstance(con, (TerminalRest, InitialRest)):
-            bad = [i for i in con.indices if not -n_v <= i < n_v]
-            if bad:
-                raise ValueError(
-                    f"'constraints': {type(con).__name__} indices {bad} out of range: "
-                    f"{type(task.system).__name__} has {n_v} minimal velocities"
-                )
+            check_rest_indices(con, task.system)
     guess = task.guess.controls
     if guess is not None and jnp.shape(guess) != (task.n_steps + 1, m):
         raise ValueError(

@@ -33,7 +33,7 @@ from jaxtyping import Array, Float
 from .._compilation_cache import asarray
 from .._typing import ArrayLike
 from .._validation import is_concrete
-from ._terms import bound_penalty, displacement, pose_error
+from ._terms import bound_penalty, check_known, displacement, pose_error
 
 __all__ = [
     "AbstractConstraint",
@@ -64,15 +64,20 @@ def _indices(x: Any) -> tuple[int, ...]:
     return tuple(int(i) for i in items)
 
 
-def _rest_residual(con: Any, system: Any, obs: Any) -> Array:
-    v = system.velocities_from_qdot(obs.q, obs.qdot)
-    n = v.shape[-1]
+def check_rest_indices(con: Any, system: Any) -> None:
+    """A rest condition's indices must name minimal velocities of ``system``."""
+    n = system.n_velocities
     bad = [i for i in con.indices if not -n <= i < n]
     if bad:
         raise ValueError(
             f"{type(con).__name__}: 'indices' {bad} out of range: {type(system).__name__} has {n} "
             "minimal velocities (system.velocities_from_qdot)"
         )
+
+
+def _rest_residual(con: Any, system: Any, obs: Any) -> Array:
+    check_rest_indices(con, system)
+    v = system.velocities_from_qdot(obs.q, obs.qdot)
     return v[jnp.asarray(con.indices, int)]
 
 
@@ -99,21 +104,14 @@ def _check_fn(con: Any, n_args: int, signature: str) -> None:
         ) from None
 
 
-def check_weight(owner: str, w: Any, *, signed: bool = False) -> None:
-    """A known penalty or objective weight must be finite (and >= 0 unless ``signed``)."""
-    if w is not None and is_concrete(w) and np.ndim(w) == 0:
-        v = float(w)
-        if not np.isfinite(v) or (not signed and v < 0):
-            need = "finite" if signed else "non-negative and finite"
-            raise ValueError(f"{owner}: 'weight' must be {need}, got {v}")
-
-
 class AbstractConstraint(eqx.Module):
     """A constraint; its ``weight`` (a field of every concrete constraint) is its weight in the
     penalty form (:meth:`Task.loss`)."""
 
     def __check_init__(self):
-        check_weight(type(self).__name__, getattr(self, "weight", None))
+        weight = getattr(self, "weight", None)  # a constraint of a user's may have none
+        if weight is not None:
+            check_known(type(self).__name__, "weight", weight, positive=False)
 
     def penalty(self, r: Array) -> Array:
         """The penalty of the residual ``r`` (equalities: ``weight |r|^2``)."""
@@ -306,7 +304,7 @@ class Bounds(eqx.Module):
     weight: Array = eqx.field(default=100.0, converter=asarray)
 
     def __check_init__(self):
-        check_weight("Bounds", self.weight)
+        check_known("Bounds", "weight", self.weight, positive=False)
 
     @classmethod
     def of(cls, system, *, q: dict | None = None, u: dict | None = None, weight: float = 100.0) -> Bounds:
@@ -338,7 +336,7 @@ def per_channel(arg: str, names: tuple[str, ...], value: Any) -> dict:
         return dict.fromkeys(names, value)
     if len(names) == 1 and len(items) == 2 and all(np.ndim(x) == 0 for x in items):
         return dict.fromkeys(names, value)
-    if items is None or len(items) != len(names):
+    if len(items) != len(names):
         raise ValueError(
             f"'{arg}' must be one bound for every channel or one per channel {names}, got {value!r}"
         )

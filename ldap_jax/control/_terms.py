@@ -137,8 +137,8 @@ class Effort(AbstractTerm):
     def __check_init__(self):
         if jnp.ndim(self.scale) != 1:
             raise ValueError(f"Effort: 'scale' must be 1-d (n_channels,), got shape {jnp.shape(self.scale)}")
-        _check_known("Effort", "scale", self.scale, positive=True)
-        _check_known("Effort", "weight", self.weight, positive=False)
+        check_known("Effort", "scale", self.scale, positive=True)
+        check_known("Effort", "weight", self.weight, positive=False)
 
     def interval(self, system, c0, c1, h):
         return self.weight * _interval_effort(c0 / self.scale, c1 / self.scale, h)
@@ -155,8 +155,8 @@ class Displacement(AbstractTerm):
     def __check_init__(self):
         if jnp.shape(self.direction) != (2,):
             raise ValueError(f"Displacement: 'direction' must be (2,), got shape {jnp.shape(self.direction)}")
-        _check_known("Displacement", "direction", self.direction)
-        _check_known("Displacement", "weight", self.weight)
+        check_known("Displacement", "direction", self.direction)
+        check_known("Displacement", "weight", self.weight)
 
     def terminal(self, system, obs, q0):
         d = displacement(obs.q, q0)
@@ -176,13 +176,13 @@ class Rotation(AbstractTerm):
     weight: Array = eqx.field(default=1.0, converter=asarray)
 
     def __check_init__(self):
-        _check_known("Rotation", "weight", self.weight)
+        check_known("Rotation", "weight", self.weight)
 
     def terminal(self, system, obs, q0):
         return -self.weight * (obs.q[2] - q0[2])
 
 
-def _check_known(owner: str, name: str, x: Any, *, positive: bool | None = None) -> None:
+def check_known(owner: str, name: str, x: Any, *, positive: bool | None = None) -> None:
     """A known value must be finite; ``positive=True``: every entry > 0, ``False``: >= 0."""
     if any(isinstance(v, jax.core.Tracer) for v in jax.tree_util.tree_leaves(x)):
         return
