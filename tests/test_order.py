@@ -176,6 +176,39 @@ def test_composition_orders(name, order, retraction):
     assert errs[-1] > 1e-13  # above round-off, so the slope is the scheme's
 
 
+ORDER_8_CASES = [
+    (name, retraction, scheme)
+    for name in SYSTEMS
+    for retraction, scheme in (("exp", "kahan_li17"), ("cayley", "kahan_li17"), ("exp", "mclachlan15"))
+]
+
+
+@pytest.mark.parametrize("name,retraction,scheme", ORDER_8_CASES)
+def test_order_8_by_self_convergence(name, retraction, scheme):
+    """Order 8 measured from the method's own successive differences ``|q_N - q_2N|`` at
+    N = 16, 32, 64 over 4 s (errors from 1e-8 to 1e-12 m, where a comparison with the reference
+    would meet its own tolerance): 8.0 +- 0.3. The limit is lj.reference's solution: each
+    maneuver's N = 16 error against it equals its difference to N = 32 to 5% (plus 1e-11 m, the
+    reference's own accuracy)."""
+    system = SYSTEMS[name]
+    batch = maneuvers(system, 3, seed=13)
+    ns = (16, 32, 64)
+    integrator = lj.RDP(order=8, retraction=retraction, scheme=scheme)
+    runs = simulate_ns(system, integrator, batch, 4.0, ns, diagnostics=False)
+    q = {}
+    for n in ns:
+        assert not bool(np.any(runs[n].failed))
+        q[n] = runs[n].q[:, n, :3]
+    diffs = [float(np.max(np.linalg.norm(q[a] - q[b], axis=-1))) for a, b in ((16, 32), (32, 64))]
+    p = float(np.log2(diffs[0] / diffs[1]))
+    assert abs(p - 8) < 0.3, (diffs, p)
+    assert diffs[1] > 1e-13  # above round-off
+    ref = np.asarray(reference_batch(system, batch, jnp.array([4.0])).q)[:, -1]
+    error = np.linalg.norm(q[16] - ref[:, :3], axis=-1)
+    estimate = np.linalg.norm(q[16] - q[32], axis=-1)
+    assert np.all(np.abs(error - estimate) <= 0.05 * estimate + 1e-11), (error, estimate)
+
+
 def test_triple_jump_and_mclachlan_reach_order_4_on_smooth_controls():
     system = SYSTEMS["snakeboard"]
     # three maneuvers, as test_composition_orders: its program of the reference solutions is reused
@@ -351,4 +384,5 @@ def test_bad_order_settings_name_the_argument():
         lj.RDP(scheme="suzuki5")
     assert lj.RDP().order == 2 and lj.RDP(alpha=0.0).order == 1
     assert lj.RDP(order=4).order == 4 and lj.RDP(order=6).scheme == "kahan_li9"
+    assert lj.RDP(order=8).scheme == "kahan_li17" and len(lj.RDP(order=8).weights) == 17
     assert lj.RDP(order=6).control_nodes[0] == 0.0 and lj.RDP(order=6).control_nodes[-1] == 1.0

@@ -40,7 +40,7 @@ def test_animation_writes_a_gif_with_one_frame_per_drawn_node(system, tmp_path):
 
 
 def test_styles_tell_every_method_apart():
-    labels = ["RDP2", "RDP4", "RDP6", "RDP6 cayley", "rdp_cayley", "RK2", "RK4", "DLA", "GNI"]
+    labels = ["RDP2", "RDP4", "RDP6", "RDP6 cayley", "RDP8", "rdp_cayley", "RK2", "RK4", "DLA", "GNI"]
     labels += ["diffrax Tsit5", "diffrax Dopri8"]
     seen = {
         (s["color"], s["ls"], s.get("marker"))

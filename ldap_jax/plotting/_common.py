@@ -33,6 +33,7 @@ _STYLES: tuple[tuple[str, dict[str, Any]], ...] = (
     (r"tsit5", {"color": "0.55", "ls": "-", "lw": 2.0, "marker": "x"}),  # diffrax peers, told apart
     (r"dopri", {"color": "0.25", "ls": "--", "lw": 2.0, "marker": "+"}),
     (_REFERENCE_PATTERN, REFERENCE_STYLE),
+    (r"(rdp|order)[\s_=\-:(,]*8(?!\d)", {"color": "indigo", "ls": "-", "marker": "*"}),
     (r"(rdp|order)[\s_=\-:(,]*6(?!\d)", {"color": "tab:pink", "ls": "-", "marker": "D"}),
     (r"(rdp|order)[\s_=\-:(,]*4(?!\d)", {"color": "tab:purple", "ls": "-", "marker": "s"}),
     (r"cayley", {"color": "tab:cyan", "ls": "-.", "marker": "v"}),
