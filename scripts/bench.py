@@ -52,6 +52,7 @@ INTEGRATORS: dict[str, Callable[[], lj.integrators.AbstractIntegrator]] = {
     "RDP4": lambda: lj.RDP(order=4),
     "RDP6": lambda: lj.RDP(order=6),
     "RDP6 cayley": lambda: lj.RDP(order=6, retraction="cayley"),
+    "RDP8": lambda: lj.RDP(order=8),
     "RK2": lj.RK2,
     "RK4": lj.RK4,
     "GNI": lj.GNI,
@@ -646,11 +647,11 @@ def _work_precision(cfg: Config, model: str, t_final: float, steps: tuple[int, .
         return float(np.mean(e)) if np.all(np.isfinite(e)) else float("nan")
 
     curves = {}
-    names = ("RDP2", "RDP4", "RDP6", "RDP6 cayley", "RK2", "RK4")
+    names = ("RDP2", "RDP4", "RDP6", "RDP6 cayley", "RDP8", "RK2", "RK4")
     for name in names:
         pts = []
         for n in steps:
-            if t_final > 60 and name in ("RDP4", "RDP6", "RDP6 cayley") and n > steps[-1] // 2:
+            if t_final > 60 and name in ("RDP4", "RDP6", "RDP6 cayley", "RDP8") and n > steps[-1] // 2:
                 continue  # high orders converge before the densest grids: keep the run short
             fn = rollout_fn(system, INTEGRATORS[name](), n, t_final)
             st = timeit(fn, *data, repeats=cfg.repeats)
@@ -679,7 +680,7 @@ def _work_precision(cfg: Config, model: str, t_final: float, steps: tuple[int, .
     levels = (1e-3, 1e-6, 1e-9) if t_final <= 60 else (1.0, 1e-1, 1e-2, 1e-3)
     cost = {name: {f"{lvl:.0e}": _cost_to_reach(pts, lvl) for lvl in levels} for name, pts in curves.items()}
     ratios = {}
-    for name in ("RDP2", "RDP4", "RDP6", "RDP6 cayley", "diffrax Tsit5"):
+    for name in ("RDP2", "RDP4", "RDP6", "RDP6 cayley", "RDP8", "diffrax Tsit5"):
         if name in cost:
             ratios[name] = {
                 lvl: (
@@ -722,7 +723,7 @@ def _equal_cost_comparison(curves) -> list[dict]:
         if not (np.isfinite(p["error"]) and p["error"] < 1.0):
             continue
         row = dict(n_steps_rk4=p["n_steps"], seconds=p["seconds_per_traj"], rk4_error=p["error"])
-        for name in ("RDP2", "RDP4", "RDP6"):
+        for name in ("RDP2", "RDP4", "RDP6", "RDP8"):
             pts = sorted(
                 (q for q in curves[name] if np.isfinite(q["error"])), key=lambda q: q["seconds_per_traj"]
             )
