@@ -1,4 +1,4 @@
-"""RDP of order 4 and 6: the folded momentum state, exact symmetry, composition orders, per-substep
+"""RDP of order 4, 6 and 8: the folded momentum state, exact symmetry, composition orders, per-substep
 structure, node velocities from the momenta, gradients and bad settings."""
 
 import equinox as eqx

@@ -76,7 +76,7 @@ class Solution(eqx.Module):
 
 def curvature_integrator(integrator: AbstractIntegrator) -> AbstractIntegrator:
     """The integrator whose second derivatives stand in for ``integrator``'s in the Hessian of the
-    Lagrangian under ``solve(..., hessian="base")``: for a composition ``lj.RDP(order=4 or 6)``
+    Lagrangian under ``solve(..., hessian="base")``: for a composition ``lj.RDP(order=4, 6 or 8)``
     its base step, ``lj.RDP(order=2)`` with the same settings, taking the whole step ``h``;
     otherwise ``integrator`` itself.
 
@@ -149,7 +149,7 @@ def solve(
             (``Solution.starts``).
         tol: stopping tolerance on the scaled KKT error (> 0; default 1e-8).
         max_iterations: iteration budget (a positive integer; default 1000, IPOPT's is 3000).
-        hessian: ``"base"`` (default): for ``lj.RDP(order=4 or 6)`` the curvature of the dynamics
+        hessian: ``"base"`` (default): for ``lj.RDP(order=4, 6 or 8)`` the curvature of the dynamics
             comes from the base step ``lj.RDP(order=2)`` over the same ``h``
             (:func:`curvature_integrator`; the iteration converges fast-linearly to the same
             solution, with Jacobians and constraints exact; 1.4-2.2x faster per solve than

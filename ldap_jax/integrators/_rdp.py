@@ -1,5 +1,5 @@
 """The reduced d'Alembert-Pontryagin (RDP) integrator (paper Sec. 4.2, eqs. (17)-(25)), and its
-symmetric compositions of order 4 and 6."""
+symmetric compositions of order 4, 6 and 8."""
 
 from __future__ import annotations
 
@@ -161,7 +161,9 @@ class RDP(AbstractAlphaIntegrator):
                     f"RDP: 'scheme' {self.scheme!r} has order {SCHEMES[self.scheme][0]}, not {self.order}"
                 )
         elif self.scheme is not None:
-            raise ValueError(f"RDP: 'scheme' applies to order 4 or 6, got scheme={self.scheme!r} at order 2")
+            raise ValueError(
+                f"RDP: 'scheme' applies to order 4, 6 or 8, got scheme={self.scheme!r} at order 2"
+            )
         if self.dtau_order is not None and (
             isinstance(self.dtau_order, bool) or not isinstance(self.dtau_order, int) or self.dtau_order < 1
         ):
