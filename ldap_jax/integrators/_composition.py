@@ -56,8 +56,8 @@ SCHEMES: dict[str, tuple[int, tuple[float, ...]]] = {
             + [1.0 - 2.0 * (0.784513610477560 + 0.235573213359357 - 1.17767998417887)]
         ),
     ),
-    # Kahan and Li's 17-stage order-8 scheme (s17odr8a; Hairer, Lubich, Wanner V.3.2): the
-    # smallest error of the order-8 schemes tried (default, order 8)
+    # Kahan and Li's 17-stage order-8 scheme (1997): the smaller error of the two order-8 schemes
+    # here (default, order 8)
     "kahan_li17": (
         8,
         _palindrome(
