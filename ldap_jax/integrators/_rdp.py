@@ -88,7 +88,7 @@ class RDP(AbstractAlphaIntegrator):
     ``"mclachlan15"``), each substep an RDP step with its own
     (possibly negative) size reading the controls at its own two ends: the constraints, (21) and
     (23) hold at every substep. ``n_steps`` of :func:`~ldap_jax.simulate` counts the composed steps.
-    Schemes whose substeps leave the step (triple jump, Yoshida's) drop to order 2 on
+    Schemes whose substeps leave the step (triple jump, Yoshida's, McLachlan's 15) drop to order 2 on
     piecewise-linear sampled controls; the defaults stay inside.
 
     **Solvers.** Systems with a closed form (:class:`~ldap_jax.systems.AbstractClosedFormSystem`:
