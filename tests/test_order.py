@@ -209,6 +209,38 @@ def test_order_8_by_self_convergence(name, retraction, scheme):
     assert np.all(np.abs(error - estimate) <= 0.05 * estimate + 1e-11), (error, estimate)
 
 
+def test_order_8_on_sampled_controls_keeps_its_order_inside_the_step():
+    """On piecewise-linear controls (lj.Sampled, a kink on a step boundary every 0.25 s) Kahan and
+    Li's 17 stages, whose substeps stay inside the step, keep order 8 (> 7.5 from successive
+    differences); McLachlan's 15, whose substeps reach 5% beyond it and cross the kinks, fall to
+    order 2 (1.8-2.2)."""
+    sb = SYSTEMS["snakeboard"]
+    q0, qdot0, ctl = index(maneuvers(sb, 1, seed=3), 0)
+    t_final = 2.0
+    samples = lj.Sampled(
+        np.stack([np.asarray(ctl(t)) for t in np.linspace(0.0, t_final, 9)]), t_final=t_final
+    )
+    for scheme, (low, high) in (("kahan_li17", (7.5, 9.0)), ("mclachlan15", (1.8, 2.2))):
+        integrator = lj.RDP(order=8, scheme=scheme)
+        q = [
+            np.asarray(
+                lj.simulate(
+                    sb,
+                    q0,
+                    qdot0,
+                    samples,
+                    t_final=t_final,
+                    n_steps=n,
+                    integrator=integrator,
+                    diagnostics=False,
+                ).q[-1, :2]
+            )
+            for n in (8, 16, 32)
+        ]
+        p = float(np.log2(np.linalg.norm(q[0] - q[1]) / np.linalg.norm(q[1] - q[2])))
+        assert low < p < high, (scheme, p)
+
+
 def test_triple_jump_and_mclachlan_reach_order_4_on_smooth_controls():
     system = SYSTEMS["snakeboard"]
     # three maneuvers, as test_composition_orders: its program of the reference solutions is reused
