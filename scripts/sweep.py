@@ -49,6 +49,7 @@ METHOD_NAMES = (
     "rdp",
     "rdp4",
     "rdp6",
+    "rdp8",
     "rdp_a0",
     "rdp_a1",
     "rdp_cayley",

@@ -109,6 +109,17 @@ def test_tiny_study(tmp_path):
     assert (tmp_path / "empty.csv").read_text().splitlines() == [",".join(study.CSV_COLUMNS)]
 
 
+def test_every_method_has_its_own_style_and_its_integrator():
+    """The figures draw every method of study.METHODS in a style of its own, and each name builds
+    the integrator it stands for (the compositions of order 4, 6 and 8 among them)."""
+    from ldap_jax.study._report import STYLES
+
+    styles = [STYLES[name] for name in study.METHODS]
+    assert len(set(styles)) == len(styles)
+    for name, order in (("rdp", 2), ("rdp4", 4), ("rdp6", 6), ("rdp8", 8)):
+        assert study.make_integrator(name).order == order
+
+
 def test_config_errors():
     with pytest.raises(ValueError, match="'methods'"):
         study.StudyConfig(methods=("rk5",))

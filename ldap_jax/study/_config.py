@@ -17,6 +17,7 @@ METHODS: dict[str, Callable[[], AbstractIntegrator]] = {
     "rdp": lambda: RDP(alpha=0.5, retraction="exp"),
     "rdp4": lambda: RDP(order=4),
     "rdp6": lambda: RDP(order=6),
+    "rdp8": lambda: RDP(order=8),
     "rdp_a0": lambda: RDP(alpha=0.0, retraction="exp"),
     "rdp_a1": lambda: RDP(alpha=1.0, retraction="exp"),
     "rdp_cayley": lambda: RDP(alpha=0.5, retraction="cayley"),

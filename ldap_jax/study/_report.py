@@ -56,6 +56,7 @@ STYLES = {
     "rdp": ("tab:blue", "-", "o"),
     "rdp4": ("tab:purple", "-", "s"),
     "rdp6": ("tab:pink", "-", "D"),
+    "rdp8": ("indigo", "-", "*"),
     "rdp_cayley": ("tab:blue", "--", "v"),
     "rdp_a0": ("tab:cyan", ":", "<"),
     "rdp_a1": ("tab:cyan", "-.", ">"),
@@ -100,7 +101,7 @@ def plot_study(
         for ax in (ax_e, ax_t, ax_f):
             ax.set_xticks(ns_all, [str(n) for n in ns_all])
             ax.minorticks_off()
-            ax.set_xlabel("resolution N (steps; macro steps for rdp4, rdp6)")
+            ax.set_xlabel("resolution N (steps; macro steps for rdp4, rdp6, rdp8)")
             ax.grid(True, which="both", alpha=0.3)
         label = {"final_error_median": "median final", "final_error_mean": "mean final"}.get(error, error)
         ax_e.set_ylabel(f"position error, {label} [m]")

@@ -169,6 +169,7 @@ DEFAULT_PAIRS: tuple[tuple[str, str], ...] = (
     ("rdp", "rk4"),
     ("rdp4", "rk4"),
     ("rdp6", "rk4"),
+    ("rdp8", "rk4"),
     ("gni", "rdp"),
     ("dla", "rdp"),
 )
