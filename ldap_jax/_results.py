@@ -73,7 +73,8 @@ def first_failure(
     Returns:
         ``(result, index, keep)``: the updated result and failure index, and ``keep``, True when
         the step's new state may be kept (nothing has failed yet, including this step). A loop
-        freezes its state when ``keep`` is False and reports NaN for every later node.
+        reports NaN for every node after a failure; it freezes its state when ``keep`` is False
+        where a later step could not run on a failed state (or when it is differentiated).
     """
     ok_before = result == RESULTS.successful
     failed_now = ok_before & (step_result != RESULTS.successful)

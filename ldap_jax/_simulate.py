@@ -51,7 +51,8 @@ class Trajectory(eqx.Module):
         constraint_residual: ``|omega(q_k) qdot_k|``, (M,); ``None`` with ``diagnostics=False``.
         step_residual: largest residual of the steps since the previous saved node, relative to
             the scale of their momenta (RDP: the horizontal (23) and discrete momentum (21)
-            equations; 0 for the explicit RK), (M,); ``None`` with ``diagnostics=False``.
+            equations; 0 for the explicit RK), (M,); ``None`` with ``diagnostics=False``. NaN
+            after a failure.
         converged: every implicit solve since the previous saved node converged, (M,).
         result: a :class:`~ldap_jax.RESULTS` item (``RESULTS[traj.result]`` is the message).
         failure_index: index of the first failed step (``n_steps`` when none failed; 0 for
@@ -261,6 +262,7 @@ def simulate(
     raise_if_concrete(system, integrator, q0, qdot0, controls, t0, t_final, check_constraints)
     settings = dict(
         forward_mode=_forward_mode((system, integrator, q0, qdot0, controls, t0, t_final)),
+        traced_parameters=_traced((system, integrator, t0, t_final)),
         n_steps=n_steps,
         plan=plan,
         diagnostics=bool(diagnostics),
@@ -282,6 +284,12 @@ def simulate(
         integrator,
         **settings,
     )
+
+
+def _traced(tree: Any) -> bool:
+    """True when a leaf of ``tree`` is traced (a value of the caller's ``jit``, ``grad`` or
+    ``vmap``): only then can a derivative with respect to it be asked for."""
+    return any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(tree))
 
 
 def _forward_mode(tree: Any) -> bool:
@@ -357,6 +365,7 @@ def _simulate(
     throw,
     check_constraints,
     forward_mode,
+    traced_parameters,
 ):
     dtype = jnp.result_type(q0, qdot0)
     q0, qdot0 = jnp.asarray(q0, dtype), jnp.asarray(qdot0, dtype)
@@ -381,6 +390,7 @@ def _simulate(
         divergence=divergence,
         initial_result=initial,
         forward_mode=forward_mode,
+        traced_parameters=traced_parameters,
     )
     obs = out.obs
     traj = Trajectory(
