@@ -761,6 +761,32 @@ def test_masked_failed_member_leaves_healthy_gradients_exact(where, fill):
         np.testing.assert_allclose(np.asarray(o), np.asarray(b), rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.parametrize("order", [4, 6, 8])
+def test_a_composed_step_reports_what_its_substeps_met(order):
+    """A composition of the closed-form step tests its state once per composed step and ORs its
+    substeps' singularity flags: the steering torque of SINGULAR_AMP crosses cos(phi) = 0 at
+    0.92 s, in the composed step [0.5, 1] s (``singular``); HUGE_AMP overflows the state in the
+    first step (``nonfinite``, with the energy test off). Eagerly and under ``jit``."""
+    integ = lj.RDP(order=order)
+
+    def run(amp):
+        traj = lj.simulate(
+            SB,
+            Z5,
+            Z5,
+            lj.Sinusoids(amp, FREQ, PHASE),
+            t_final=TF,
+            n_steps=N,
+            integrator=integ,
+            diagnostics=False,
+        )
+        return traj.result, traj.failure_index
+
+    for amp, expected, index in ((SINGULAR_AMP, R.singular, 1), (HUGE_AMP, R.nonfinite, 0)):
+        for result, k in (run(amp), jax.jit(run)(amp)):
+            assert result == expected and int(k) == index, (order, R[result], int(k))
+
+
 def test_a_failed_state_is_frozen_only_when_differentiated():
     """The carry update of an explicit step (``_rollout._advance``): the new state as it is in a
     program that is not differentiated; the last good state where ``keep`` is False in one that
