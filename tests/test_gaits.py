@@ -78,7 +78,9 @@ def test_floquet_analysis_names_the_jordan_structure():
 
 def test_drive_gait_sensitivities_match_finite_differences_of_resolves(drive):
     """d(displacement per cycle)/d(torque bound, mass, period) by the implicit function theorem
-    against central differences of re-solves (rtol 1e-5)."""
+    against central differences of re-solves (rtol 1e-5), in reverse mode and in forward mode
+    (a ``jax.jvp`` with respect to the model or the period once raised: the solution's
+    model-error diagnostic rolled out through the failure mask's custom VJP)."""
     task, sol = drive
     p0 = sol.params
 
@@ -93,6 +95,8 @@ def test_drive_gait_sensitivities_match_finite_differences_of_resolves(drive):
 
     b0, m0, t0 = jnp.asarray(0.1), jnp.asarray(float(task.system.m)), jnp.asarray(float(task.t_final))
     grad = jax.grad(distance, argnums=(0, 1, 2))(b0, m0, t0)
+    forward = jax.jacfwd(distance, argnums=(0, 1, 2))(b0, m0, t0)
+    np.testing.assert_allclose(np.asarray(forward), np.asarray(grad), rtol=1e-9)
     for i, (x, eps) in enumerate(((b0, 1e-5), (m0, 1e-4), (t0, 1e-4))):
         args = [b0, m0, t0]
         args[i] = x + eps

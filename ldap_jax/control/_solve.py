@@ -54,7 +54,7 @@ class Solution(eqx.Module):
             ``h/2`` (for an order-``p`` method this is the model's own error times ``1 - 2^-p``).
             ``lc.replay`` measures it against ``lj.reference``. The end point at ``h`` is the
             solution's last node, so for a solve that did not converge the estimate also holds
-            its remaining dynamics defects.
+            its remaining dynamics defects. A diagnostic: its derivative is zero.
         starts: how many initial guesses were run (1, or the batch of ``params0``), and
             ``starts_converged`` how many of them converged.
     """
@@ -418,7 +418,7 @@ def _finish(task: Task, st: IPMState, violation: Array) -> Solution:
             states=chi[:, : lay.nx],
             multipliers=(st.y, st.nu),
             model_error=_model_error(
-                task, dyn, lay, jax.lax.stop_gradient((from_variables(lay, p, v), chi[-1]))
+                task, dyn, lay, (from_variables(lay, p, v), chi[-1])
             ),
         )
 
@@ -427,7 +427,10 @@ def _model_error(task: Task, dyn, lay, solution) -> Array:
     """``(position, heading)`` difference at ``t_N`` between the task's model at ``h`` and ``h/2``.
 
     The end point at ``h`` is the solution's own last node (its multiple-shooting defects are
-    below the solver's tolerance); the one at ``h/2`` a rollout of ``2 N`` steps."""
+    below the solver's tolerance); the one at ``h/2`` a rollout of ``2 N`` steps. A diagnostic:
+    nothing in it is differentiated (the rollout's failure mask has no forward mode, and a
+    ``jax.jvp`` of :func:`solve` with respect to the model or the period reached it)."""
+    task, solution = _stopped(task), jax.lax.stop_gradient(solution)
     params, chi_last = solution
     q0, qdot0 = task.initial_state(params)
     controls = task.controls(params)
