@@ -21,10 +21,10 @@ class AbstractPolicy(eqx.Module):
     """A feedback law ``u = pi(t, q, qdot)`` with ``n_channels`` outputs.
 
     :func:`~ldap_jax.simulate` samples it like a sampled-data controller: on the step
-    ``[t_k, t_k + h]`` every control time ``t`` the integrator reads gets ``pi(t, q_k, qdot_k)``,
-    with the state of the step's start (the feedforward part may vary within the step, the
-    feedback sees the last node). With zero feedback a policy reproduces its open-loop
-    feedforward exactly.
+    ``[t_k, t_k + h]`` every control time ``t`` the integrator reads gets
+    :meth:`sampled` ``(t, t_k, q_k, qdot_k)``, with the state of the step's start (the
+    feedforward part may vary within the step, the feedback sees the last node). With zero
+    feedback a policy reproduces its open-loop feedforward exactly.
     """
 
     @property
@@ -33,6 +33,17 @@ class AbstractPolicy(eqx.Module):
 
     @abc.abstractmethod
     def __call__(self, t: Array, q: Array, qdot: Array) -> Float[Array, " n_channels"]: ...
+
+    def sampled(self, t: Array, t_state: Array, q: Array, qdot: Array) -> Float[Array, " n_channels"]:
+        """The control at time ``t`` when the latest measured state is ``(q, qdot)``, taken at
+        ``t_state <= t`` (the start of the step that contains ``t``).
+
+        Default: ``self(t, q, qdot)``. A policy that compares the state with a time-varying
+        reference overrides it to compare at ``t_state``, where the state was measured: compared
+        at ``t``, a state that is exactly on the reference would read as off it by
+        ``x_ref(t) - x_ref(t_state)``, and the feedback would push the run off its reference.
+        """
+        return self(t, q, qdot)
 
 
 class Policy(AbstractPolicy):
@@ -66,7 +77,9 @@ class Policy(AbstractPolicy):
 
 class LinearPolicy(AbstractPolicy):
     """Time-varying affine feedback around a reference:
-    ``u(t) = u_ff(t) + K(t) [x_ref(t) - x]`` with ``x = (q, qdot)``.
+    ``u(t) = u_ff(t) + K(t) [x_ref(t) - x]`` with ``x = (q, qdot)``; sampled by
+    :func:`~ldap_jax.simulate` as ``u(t) = u_ff(t) + K(t_k) [x_ref(t_k) - x_k]`` on the step
+    ``[t_k, t_k + h]`` (:meth:`sampled`: the correction held over the step, as a discrete LQR's).
 
     Args:
         feedforward: open-loop controls ``u_ff``.
@@ -128,13 +141,20 @@ class LinearPolicy(AbstractPolicy):
         return self.feedforward.n_channels
 
     def __call__(self, t, q, qdot):
+        return self.sampled(t, t, q, qdot)
+
+    def sampled(self, t, t_state, q, qdot):
+        """``u_ff(t) + K(t_state) [x_ref(t_state) - x]``: the feedback compares the state with the
+        reference at the time the state was taken (on the step ``[t_k, t_k + h]`` of
+        :func:`~ldap_jax.simulate`, ``t_k``), so a run on its reference gets no feedback."""
         x = jnp.concatenate([q, qdot])
         if self.times is None:
             x_ref = jnp.zeros_like(x) if self.reference is None else self.reference
             gain = self.gain
         else:
-            x_ref = jnp.stack([jnp.interp(t, self.times, col) for col in self.reference.T])
-            i = jnp.clip(jnp.searchsorted(self.times, t, side="right") - 1, 0, self.times.shape[0] - 1)
+            x_ref = jnp.stack([jnp.interp(t_state, self.times, col) for col in self.reference.T])
+            i = jnp.searchsorted(self.times, t_state, side="right") - 1
+            i = jnp.clip(i, 0, self.times.shape[0] - 1)
             gain = self.gain if self.gain.ndim == 2 else self.gain[i]
         return self.feedforward(t) + gain @ (x_ref - x)
 

@@ -321,7 +321,7 @@ def rollout(
     def sample(k, obs):
         t = node_time(k)
         if policy:
-            return jax.vmap(lambda tt: controls(tt, obs.q, obs.qdot))(t + h * fractions)
+            return jax.vmap(lambda tt: controls.sampled(tt, t, obs.q, obs.qdot))(t + h * fractions)
         return sample_open(t)
 
     def node_controls(k, c_stage):

@@ -132,6 +132,24 @@ def test_policy_with_zero_feedback_equals_open_loop():
     np.testing.assert_array_equal(lj.simulate(car, q0, qdot0, law, **kw).q, by_policy.q)
 
 
+def test_linear_policy_about_its_own_run_reproduces_it():
+    """A LinearPolicy whose reference is the open-loop run itself (its nodes) gets no feedback on
+    that run, for a composed step that samples the policy inside the step (RDP order 4): the run
+    equals the open loop to 1e-11 with a gain of order 1 on every state. The feedback compares
+    the state of the step's start with the reference there; compared at the later sample times
+    of the step, it had pushed the run 1e-3 off its reference."""
+    car = lj.Car()
+    q0, qdot0, ctl = car.sample_maneuver(jax.random.PRNGKey(2))
+    kw = dict(t_final=4.0, n_steps=80, integrator=lj.RDP(order=4))
+    open_loop = lj.simulate(car, q0, qdot0, ctl, **kw)
+    reference = jnp.concatenate([open_loop.q, open_loop.qdot], axis=1)
+    gain = 0.5 * jnp.ones((2, 10))
+    policy = lj.LinearPolicy(ctl, gain, reference, open_loop.t)
+    closed = lj.simulate(car, q0, qdot0, policy, **kw)
+    np.testing.assert_allclose(closed.q, open_loop.q, atol=1e-11)
+    np.testing.assert_allclose(closed.qdot, open_loop.qdot, atol=1e-11)
+
+
 # ------------------------------------------------------------------------------------- the solver
 @pytest.fixture(scope="module")
 def car_solutions():

@@ -514,6 +514,7 @@ def test_gait_tracker_is_served_from_its_export(exports):
     for got in (first, again):
         np.testing.assert_allclose(np.asarray(got.gains), np.asarray(want.gains), rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(np.asarray(got.z_ref), np.asarray(want.z_ref), rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(np.asarray(got.z_rate), np.asarray(want.z_rate), rtol=1e-12, atol=1e-12)
     with compiled_programs("trace") as traced:
         heavier = lc.gait_tracker(task, params, q_weight=2.0)
     assert not {"export_gait_tracker", "_tracker_of"} & set(traced), traced

@@ -417,9 +417,7 @@ def _finish(task: Task, st: IPMState, violation: Array) -> Solution:
             resets=st.resets,
             states=chi[:, : lay.nx],
             multipliers=(st.y, st.nu),
-            model_error=_model_error(
-                task, dyn, lay, (from_variables(lay, p, v), chi[-1])
-            ),
+            model_error=_model_error(task, dyn, lay, (from_variables(lay, p, v), chi[-1])),
         )
 
 
