@@ -95,7 +95,8 @@ def make_gait(
     Not every system has a gait. The roller racer's momentum obeys
     ``p' = a(phi) phidot p + beta(phi) phidot^2`` with ``beta > 0`` and no torque in it, so
     ``exp(-int_0^phi a) p`` grows over any cycle in which the hinge moves: it has no periodic
-    motion but coasting, and ``lc.solve`` reports its gait task as locally infeasible. With
+    motion but coasting, and ``lc.solve`` does not converge on its gait task (locally infeasible
+    constraints, or an iteration budget spent while the objective runs away). With
     friction (``lj.roller_racer(drag=0.3)``) it has limit cycles: :func:`racer_gait`.
 
     Raises:
