@@ -216,8 +216,9 @@ class DiscreteDynamics(eqx.Module):
         """States at nodes ``0 .. K-1`` from ``x0`` and the control values ``us`` (K >= 1) at the
         nodes (one ``lax.scan``). From a step that fails (Newton not converged, the system's
         singularity, a non-finite state) on, the states are NaN."""
-        if jnp.ndim(us) != 2 or jnp.shape(us)[0] < 1:
-            raise ValueError(f"'us' must be (K, n_controls) with K >= 1 nodes, got shape {jnp.shape(us)}")
+        m = self.system.n_controls
+        if jnp.ndim(us) != 2 or jnp.shape(us)[0] < 1 or jnp.shape(us)[1] != m:
+            raise ValueError(f"'us' must be (K, {m}) with K >= 1 nodes, got shape {jnp.shape(us)}")
 
         def body(x, uu):
             x1, info = self.step_with_info(x, uu[0], uu[1])

@@ -24,7 +24,10 @@ class AbstractPolicy(eqx.Module):
     ``[t_k, t_k + h]`` every control time ``t`` the integrator reads gets
     :meth:`sampled` ``(t, t_k, q_k, qdot_k)``, with the state of the step's start (the
     feedforward part may vary within the step, the feedback sees the last node). With zero
-    feedback a policy reproduces its open-loop feedforward exactly.
+    feedback a policy reproduces its open-loop feedforward exactly. The first sample sees
+    ``qdot0`` as given: where a system takes a shape velocity from the controls (the car's
+    steering rate), an open-loop run sets it from the controls at ``t0``, but a policy reads the
+    value passed, so give it the rate the policy's reference has there.
     """
 
     @property

@@ -43,14 +43,15 @@ class RESULTS(eqx.Enumeration):
         "reduce the step, or raise `divergence` if the growth is physical."
     )
     invalid_input = (
-        "an input is invalid: t_final <= t0 or a non-finite time (simulate), non-finite, decreasing "
+        "an input is invalid: t_final <= t0 or a non-finite time (simulate), a non-positive or "
+        "non-finite step h (discretize), non-finite, decreasing "
         "or early sample times ts (reference), a non-finite initial state, non-finite controls, "
         "qdot0 violating the constraints, a physical parameter out of range (e.g. a non-positive "
         "mass, or I >= m l^2 for the snakeboard), alpha outside [0, 1], or alpha != 1/2 for "
         "RDP(order=4 | 6). It was found on traced "
         "values (inside jit or vmap), so it is reported for this trajectory alone instead of "
-        "raised (every node is NaN); call simulate (or reference) eagerly on this member to get "
-        "the error naming the argument."
+        "raised (every node is NaN); call simulate (or reference, or discretize) eagerly on this "
+        "member to get the error naming the argument."
     )
     max_steps_reached = (
         "the adaptive solver reached max_steps before the final time (lj.reference): the "

@@ -1152,6 +1152,11 @@ TASK_RAISES = {
     "dynamics observe x": (lambda: DYN.observe(np.zeros(DYN.n_state + 1), np.zeros(2)), ValueError, "'x'"),
     "dynamics node u": (lambda: DYN.node(np.zeros(DYN.n_state), np.zeros((1, 2))), ValueError, "'u'"),
     "dynamics rollout us": (lambda: DYN.rollout(np.zeros(DYN.n_state), np.zeros(4)), ValueError, "'us'"),
+    "dynamics rollout us channels": (
+        lambda: DYN.rollout(np.zeros(DYN.n_state), np.zeros((5, 3))),
+        ValueError,
+        r"'us' must be \(K, 2\)",
+    ),
     # lc.optimize / lc.multistart: input checks (before compiling)
     "optimize n_iterations 0": (
         lambda: lc.optimize(PARK.value, PARK.init(), n_iterations=0),

@@ -44,4 +44,5 @@ from ._report import write_csv as write_csv
 from ._run import position_errors as position_errors
 from ._run import run_study as run_study
 from ._run import runtime_ratios as runtime_ratios
+from ._run import study_maneuvers as study_maneuvers
 from ._summary import point_statistics as point_statistics

@@ -7,6 +7,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -83,10 +84,17 @@ def rollout_nodes(
     *,
     n_out: int,
     mesh: Mesh,
+    xla_defaults: bool = False,
 ):
     """:func:`ldap_jax.simulate` over a batch of maneuvers already placed on the devices of
     ``mesh`` (global arrays, e.g. from :func:`shard_batch` or
     :func:`~ldap_jax.study.global_maneuvers`), keeping ``n_out + 1`` evenly spaced positions.
+
+    ``xla_defaults``: compile the program with XLA's default options, as a user's ``jax.jit``
+    does, instead of :func:`ldap_jax.compiler_options` (default ``False``). The study times its
+    points this way: the library's options halve the compile time but slow some methods' runs
+    more than others' (200 snakeboard maneuvers, 1000 steps: RDP order 2 1.37x, order 6 1.52x,
+    RK4 0.92x), which would bias the runtime ratios between methods.
 
     Returns:
         ``(q_out (B, n_out + 1, d), result codes (B,))``, global arrays split as the batch is.
@@ -97,9 +105,19 @@ def rollout_nodes(
     if int(n_steps) % n_out:
         raise ValueError(f"'n_steps' ({n_steps}) must be a multiple of n_out ({n_out})")
     q0, qdot0, ctl = maneuvers
-    run = shard_vmap(_nodes, in_axes=(None,) * 5 + (0, 0, 0), mesh=mesh)
     t_final = jnp.asarray(t_final, q0.dtype)
-    return run(system, integrator, t_final, int(n_steps), int(n_out), q0, qdot0, ctl)
+    args = (system, integrator, t_final, int(n_steps), int(n_out), mesh, q0, qdot0, ctl)
+    return (_sharded_nodes_xla_defaults if xla_defaults else _sharded_nodes)(*args)
+
+
+def _sharded_nodes(system, integrator, t_final, n_steps, n_out, mesh, q0, qdot0, ctl):
+    run = shard_vmap(_nodes, in_axes=(None,) * 5 + (0, 0, 0), mesh=mesh)
+    return run(system, integrator, t_final, n_steps, n_out, q0, qdot0, ctl)
+
+
+# the caller's jit of a user: the sharded program inside it is traced inline and compiles with
+# XLA's defaults
+_sharded_nodes_xla_defaults = eqx.filter_jit(_sharded_nodes)
 
 
 def timed(call: Callable[[], Any], repeats: int) -> tuple[Any, float]:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from collections.abc import Callable
 from functools import reduce
 
@@ -95,8 +96,9 @@ class StudyConfig:
         resolutions: total numbers of steps N; each must be a multiple of ``n_out``.
         runs: maneuvers per model.
         seed: seed of the maneuvers.
-        n_out: evenly spaced nodes (besides t = 0) at which errors are measured; default the
-            greatest common divisor of the resolutions, capped at 500.
+        n_out: evenly spaced nodes (besides t = 0) at which errors are measured (the max error is
+            the largest over these ``n_out + 1`` times); default the greatest common divisor of
+            the resolutions, capped at 500 (a warning when that leaves fewer than 10).
         reference_step: largest step of the RK4 reference (a converged fine-step run, also at
             least 4 times finer than the finest resolution; its own error is estimated by
             halving the step on ``reference_check`` maneuvers).
@@ -157,6 +159,13 @@ class StudyConfig:
         bad = [n for n in self.resolutions if n % self.output_nodes]
         if bad:
             raise ValueError(f"'resolutions' {bad} are not multiples of n_out={self.output_nodes}")
+        if self.n_out is None and self.output_nodes < 10:
+            warnings.warn(
+                f"StudyConfig: the resolutions {tuple(self.resolutions)} have no common factor above "
+                f"{self.output_nodes}, so the max errors are taken at only {self.output_nodes + 1} times "
+                "(n_out = the greatest common divisor); choose resolutions with a common factor, or n_out",
+                stacklevel=3,
+            )
 
     @property
     def output_nodes(self) -> int:

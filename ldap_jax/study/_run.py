@@ -16,10 +16,10 @@ from ..systems import AbstractSystem
 from ._batch import device_mesh, reference_steps, rollout_nodes, timed
 from ._chunks import ChunkStore
 from ._config import CSV_COLUMNS, MODELS, StudyConfig, make_integrator
-from ._maneuvers import global_maneuvers
+from ._maneuvers import global_maneuvers, sample_maneuvers
 from ._summary import host_scalars, point_statistics, reference_statistics
 
-__all__ = ["run_study", "position_errors", "runtime_ratios"]
+__all__ = ["run_study", "position_errors", "runtime_ratios", "study_maneuvers"]
 
 
 def position_errors(q: np.ndarray, q_ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -49,11 +49,34 @@ class _Reference(NamedTuple):
     error: float
 
 
+def _model_seed(config: StudyConfig, model: str) -> int:
+    """The seed of ``model``'s maneuvers: ``config.seed + 1000 i``, ``i`` its index in :data:`MODELS`."""
+    return config.seed + 1000 * list(MODELS).index(model)
+
+
+def study_maneuvers(config: StudyConfig, model: str) -> tuple:
+    """The ``config.runs`` maneuvers ``(q0, qdot0, controls)`` the study runs for ``model`` (one of
+    ``config.models``), on the host: :func:`~ldap_jax.study.sample_maneuvers` of ``MODELS[model]()``
+    with the seed ``config.seed + 1000 i`` (``i`` the model's index in :data:`MODELS`) and
+    ``config.zero_steer_rate``. Member ``j`` is row ``j`` of every point of the model, up to the
+    round-off of a batch of another size, so that a point can be checked maneuver by maneuver.
+
+    Raises:
+        ValueError: ``model`` not in ``config.models``.
+    """
+    if model not in config.models:
+        raise ValueError(f"'model' must be one of the study's models {config.models}, got {model!r}")
+    system = MODELS[model]()
+    return sample_maneuvers(
+        system, config.runs, _model_seed(config, model), zero_steer_rate=config.zero_steer_rate
+    )
+
+
 def _reference(config: StudyConfig, model: str, dur: float, mesh: Mesh, log) -> _Reference:
     """The maneuvers of ``model`` (each process samples its devices' members), the RK4 reference
     on them, and the reference's error estimated against half its step on a few of them."""
     system = MODELS[model]()
-    seed = config.seed + 1000 * list(MODELS).index(model)
+    seed = _model_seed(config, model)
     n_out = config.output_nodes
 
     def maneuvers(n: int):
@@ -83,8 +106,10 @@ def _point(config: StudyConfig, ref: _Reference, task, mesh: Mesh) -> dict:
     integrator = make_integrator(method)
     n_out = config.output_nodes
 
-    def run(man):
-        return lambda: rollout_nodes(ref.system, integrator, man, dur, n, n_out=n_out, mesh=mesh)
+    def run(man):  # timed: compiled as a user's jax.jit would compile it
+        return lambda: rollout_nodes(
+            ref.system, integrator, man, dur, n, n_out=n_out, mesh=mesh, xla_defaults=True
+        )
 
     n_time = min(config.timing_runs, config.runs)
     if n_time < config.runs:
