@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -243,6 +244,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             parser.error(f"argument {flag}: must be a positive integer, got {value}")
     if args.port is not None and not 0 < args.port < 65536:
         parser.error(f"argument --port: must be in 1..65535, got {args.port}")
+    if shutil.which(command[0]) is None:
+        parser.error(f"argument command: {command[0]!r} is not a program on PATH (nor an executable path)")
     return launch(command, args.num_processes, cpu_devices=args.cpu_devices, host=args.host, port=args.port)
 
 

@@ -252,6 +252,10 @@ def test_launcher_stops_the_others_when_one_fails(tmp_path):
     assert launch.main(["-n", "2", "--", sys.executable, "-c", child, "ok"]) == 0
     with pytest.raises(SystemExit):
         launch.main(["-n", "0", "--", "true"])
+    # a command that is not a program: argparse's error naming it, not a traceback from Popen
+    with pytest.raises(SystemExit) as exit_info:
+        launch.main(["-n", "2", "--", "no_such_program_ldap_jax"])
+    assert exit_info.value.code == 2
 
 
 @pytest.mark.parametrize(

@@ -88,6 +88,7 @@ def test_tiny_study(tmp_path):
     study.write_csv(rows, path)
     back = study.read_csv(path)
     assert list(back[0]) == list(study.CSV_COLUMNS)
+    assert back == [{c: r[c] for c in study.CSV_COLUMNS} for r in rows]  # read back exactly
     assert {r["method"] for r in back} == {"rdp", "gni", "dla", "rk2"}
     for r in back:
         for col in study.CSV_COLUMNS:

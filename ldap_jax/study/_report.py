@@ -13,13 +13,14 @@ __all__ = ["write_csv", "read_csv", "plot_study", "format_table"]
 
 
 def write_csv(rows: list[dict], path: str | os.PathLike) -> None:
-    """Write the study's rows (columns :data:`CSV_COLUMNS`)."""
+    """Write the study's rows (columns :data:`CSV_COLUMNS`), every number to its full precision
+    (the shortest text that reads back to the same float: :func:`read_csv` returns the rows)."""
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     with open(path, "w", newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=list(rows[0].keys()) if rows else list(CSV_COLUMNS))
         writer.writeheader()
         for r in rows:
-            writer.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
+            writer.writerow({k: (repr(float(v)) if isinstance(v, float) else v) for k, v in r.items()})
 
 
 def read_csv(path: str | os.PathLike) -> list[dict]:
