@@ -35,7 +35,9 @@ class RESULTS(eqx.Enumeration):
         "have vanished in a fold of the discrete equations). Reduce the step or raise the "
         "integrator's newton_iterations. For a System of your own, also check that its kinetic "
         "energy is positive definite in the velocities the forces drive (else the Newton matrix is "
-        "singular at every step)."
+        "singular at every step), and whether the run is approaching a singularity of its "
+        "connection or symmetry basis: Newton can fail there before the `singularity` function "
+        "vanishes, at every step size; a lift that stays regular along the motion avoids it."
     )
     diverged = (
         "diverged: the energy balance E - E0 - W grew past `divergence` times the energy scale "

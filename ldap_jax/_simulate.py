@@ -213,7 +213,11 @@ def simulate(
             failure's message. Under ``jax.vmap`` it raises when any member failed and does not
             say which one (the check runs inside the batched program): run without ``throw`` and
             read ``jnp.nonzero(traj.failed)`` to find the members.
-        check_constraints: check that ``qdot0`` satisfies the constraints.
+        check_constraints: check that ``qdot0`` satisfies the constraints (default ``True``:
+            a ``ValueError`` eagerly, ``invalid_input`` on traced values). With ``False`` a
+            ``qdot0`` off the constraints is the caller's responsibility: node 0 reports it as
+            given, and each integrator reads only what its scheme takes from it (the momenta
+            of its components, or their projection), so the runs differ from one another.
 
     Returns:
         :class:`Trajectory`.
