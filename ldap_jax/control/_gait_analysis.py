@@ -54,11 +54,17 @@ def reduced_state(task: Task, q: Array, qdot: Array) -> Array:
     return jnp.concatenate([q[_keep(task)], task.system.velocities_from_qdot(q, qdot)])
 
 
-def _start(task: Task, params, z: Array) -> tuple[Array, Array]:
+def _configuration(task: Task, z: Array) -> tuple[Array, Array]:
+    """``(q, v)`` of a reduced state ``z = (r, v)``: the group and the cyclic coordinates at 0."""
     keep = _keep(task)
     q = jnp.zeros((task.system.n_config,), z.dtype).at[keep].set(z[: keep.size])
+    return q, z[keep.size :]
+
+
+def _start(task: Task, params, z: Array) -> tuple[Array, Array]:
+    q, v = _configuration(task, z)
     c0 = task.controls(params)(jnp.zeros((), z.dtype))
-    return q, task.system.qdot_from_velocities(q, z[keep.size :], c0)
+    return q, task.system.qdot_from_velocities(q, v, c0)
 
 
 def _one_cycle(task: Task, params, z: Array):

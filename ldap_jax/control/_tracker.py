@@ -32,7 +32,7 @@ from .._discrete import discretize
 from .._policy import AbstractPolicy
 from .._validation import check_positive_int, is_concrete
 from . import _export
-from ._gait_analysis import _keep, gait_params, reduced_state
+from ._gait_analysis import _configuration, _keep, gait_params, reduced_state
 from ._task import Task
 
 __all__ = ["GaitTracker", "gait_tracker"]
@@ -105,12 +105,11 @@ def _linearised_steps(task: Task, params):
     """``(z_nodes, A, B)``: the cycle's reduced states and the Jacobians of each step's map."""
     dyn = discretize(task.system, task.integrator, h=task.h)
     controls = task.parameterization.values(params.controls)  # (N + 1, m) physical controls
-    keep = _keep(task)
     system = task.system
 
     def start(z, c):
-        q = jnp.zeros((system.n_config,), z.dtype).at[keep].set(z[: keep.size])
-        return q, system.qdot_from_velocities(q, z[keep.size :], c)
+        q, v = _configuration(task, z)
+        return q, system.qdot_from_velocities(q, v, c)
 
     def step(z, du, k):
         c0, c1 = controls[k] + du, controls[k + 1] + du
@@ -168,8 +167,7 @@ def _cycle_rates(task: Task, params, z_nodes: Array) -> Array:
     takes_rate = "u_kin_dot" in inspect.signature(system.velocity_dynamics).parameters
 
     def rate(z, ck, dck):
-        q = jnp.zeros((system.n_config,), z.dtype).at[keep].set(z[: keep.size])
-        v = z[keep.size :]
+        q, v = _configuration(task, z)
         f, u_kin = system.inputs(ck)
         qdot = system.qdot_from_velocities(q, v, u_kin)
         extra = (system.inputs(dck)[1],) if takes_rate else ()
