@@ -233,7 +233,8 @@ def discretize(
     system: AbstractSystem, integrator: AbstractIntegrator | None = None, *, h: ArrayLike, t0: ArrayLike = 0.0
 ) -> DiscreteDynamics:
     """The discrete-time dynamics ``x_{k+1} = f(x_k, u_k, u_{k+1}, k)`` of ``integrator`` (default
-    ``lj.RDP()``) on ``system`` with step ``h`` (s).
+    ``lj.RDP()``) on ``system`` with step ``h`` (s), node ``k`` at ``t_k = t0 + k h`` (``t0``
+    default 0).
 
     Raises:
         TypeError, ValueError: a bad system, integrator, step or start time.

@@ -121,10 +121,10 @@ def reference(
         ts: non-decreasing, finite sample times (T,), all ``>= t0``; e.g. ``traj.t`` of a
             :func:`~ldap_jax.simulate` run, or just ``[t_final]``.
         t0: the time at which ``(q0, qdot0)`` is given (default 0, as for :func:`~ldap_jax.simulate`).
-        rtol, atol: positive tolerances (float64 recommended: enable ``jax_enable_x64``).
+        rtol, atol: positive tolerances (default 1e-11 each; float64 recommended: enable ``jax_enable_x64``).
         solver: a diffrax solver (default ``diffrax.Dopri8()``).
-        max_steps: cap on solver steps (accepted and rejected).
-        check_constraints: check that ``qdot0`` satisfies the constraints.
+        max_steps: cap on solver steps (accepted and rejected; default 200000).
+        check_constraints: check that ``qdot0`` satisfies the constraints (default ``True``).
 
     Returns:
         :class:`Solution` with ``q`` and ``qdot`` at ``ts``.

@@ -185,21 +185,21 @@ def simulate(
         n_steps: number of steps N (static: each new N compiles once). For compositions
             (``RDP(order=4 | 6)``) the number of composed steps.
         integrator: default ``RDP(alpha=0.5, retraction="exp")`` (order 2).
-        t0: start time (s).
-        save: which nodes to return: ``"all"`` (N + 1 nodes), ``"final"`` (the last node only),
-            a stride ``k`` dividing N (nodes 0, k, 2k, ..., N), or a sequence of node indices.
-            Memory during the run is O(saved nodes) for the first three. The saved nodes are
-            always an axis of their own (M), so ``"final"`` gives M = 1: ``traj.q[-1]`` is the node
-            (``traj.q[..., -1, :]`` under ``vmap``), the same for every ``save``.
-        diagnostics: compute energy, work, momentum and constraint residual (observing every
-            node, needed for the work integral and the divergence test). ``False`` observes the
-            saved nodes only: the fastest positions-only run.
-        checkpoint: memory policy for reverse mode: ``False`` (the fastest: the closed-form kernels
-            store only each step's sin/cos values and failure masks and recompute the rest),
+        t0: start time (s, default 0).
+        save: which nodes to return: ``"all"`` (default; N + 1 nodes), ``"final"`` (the last node
+            only), a stride ``k`` dividing N (nodes 0, k, 2k, ..., N), or a sequence of node
+            indices. Memory during the run is O(saved nodes) for the first three. The saved nodes
+            are always an axis of their own (M), so ``"final"`` gives M = 1: ``traj.q[-1]`` is the
+            node (``traj.q[..., -1, :]`` under ``vmap``), the same for every ``save``.
+        diagnostics: (default ``True``) compute energy, work, momentum and constraint residual
+            (observing every node, needed for the work integral and the divergence test). ``False``
+            observes the saved nodes only: the fastest positions-only run.
+        checkpoint: memory policy for reverse mode: ``False`` (default, the fastest: the closed-form
+            kernels store only each step's sin/cos values and failure masks and recompute the rest),
             ``True``/``"step"`` (``jax.checkpoint`` on the step: O(N) states), ``"sqrt"`` (nested,
-            ~sqrt(N) checkpointed chunks: O(sqrt N) states for about one extra forward pass), or
-            an integer chunk length.
-        divergence: fail with ``RESULTS.diverged`` once ``|E_k - E_0 - W_k|`` exceeds
+            ~sqrt(N) checkpointed chunks: O(sqrt N) states for about one extra forward pass), or an
+            integer chunk length.
+        divergence: (default 100) fail with ``RESULTS.diverged`` once ``|E_k - E_0 - W_k|`` exceeds
             ``divergence * (|E_0| + min(int |<f, rdot>| dt, E_f))`` (the energy balance broken by
             orders of magnitude: a numerically unstable run); ``None`` (or ``inf``) disables it.
             ``E_f = 1/2 P^T M^-1 P`` is the energy that the forces' impulse (its range ``P`` over
@@ -209,10 +209,10 @@ def simulate(
             every node when ``diagnostics`` is on (with ``diagnostics=False`` only non-finite
             states are caught). Independently, a non-finite energy, work, momentum or
             constraint residual at any node fails the run with ``RESULTS.nonfinite``.
-        throw: raise (inside jit, via ``eqx.error_if``) if the integration failed, with the
-            failure's message. Under ``jax.vmap`` it raises when any member failed and does not
-            say which one (the check runs inside the batched program): run without ``throw`` and
-            read ``jnp.nonzero(traj.failed)`` to find the members.
+        throw: (default ``False``) raise (inside jit, via ``eqx.error_if``) if the integration
+            failed, with the failure's message. Under ``jax.vmap`` it raises when any member failed
+            and does not say which one (the check runs inside the batched program): run without
+            ``throw`` and read ``jnp.nonzero(traj.failed)`` to find the members.
         check_constraints: check that ``qdot0`` satisfies the constraints (default ``True``:
             a ``ValueError`` eagerly, ``invalid_input`` on traced values). With ``False`` a
             ``qdot0`` off the constraints is the caller's responsibility: node 0 reports it as

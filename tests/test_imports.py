@@ -42,3 +42,31 @@ def test_import_does_not_load_optional_dependencies():
     res = subprocess.run([sys.executable, "-c", SCRIPT], capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr[-3000:]
     assert res.stdout.strip().endswith("OK")
+
+
+def test_every_default_is_named_in_its_docstring():
+    """Every public function and class of the package and its subpackages names each of its
+    parameters with a default in its docstring (where the default is stated): a new argument
+    cannot be added without documenting it."""
+    import inspect
+    import re
+
+    import ldap_jax as lj
+    from ldap_jax import control, plotting, study
+
+    missing = []
+    for mod_name, mod in {"lj": lj, "lc": control, "study": study, "plotting": plotting}.items():
+        for name in getattr(mod, "__all__", None) or dir(mod):
+            obj = getattr(mod, name)
+            if name.startswith("_") or inspect.ismodule(obj) or not callable(obj):
+                continue
+            try:
+                params = inspect.signature(obj).parameters.values()
+            except (TypeError, ValueError):  # a builtin or an object without a signature
+                continue
+            doc = obj.__doc__ or ""
+            for p in params:
+                if p.default is not inspect.Parameter.empty and not p.name.startswith("_"):
+                    if not re.search(rf"\b{re.escape(p.name)}\b", doc):
+                        missing.append(f"{mod_name}.{name}({p.name}={p.default!r})")
+    assert not missing, f"defaults not named in their docstrings: {missing}"

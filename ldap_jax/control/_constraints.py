@@ -168,7 +168,8 @@ class TerminalPose(AbstractTerminalConstraint):
 class TerminalRest(AbstractTerminalConstraint):
     """The minimal velocities ``v = system.velocities_from_qdot(q, qdot)`` with indices
     ``indices`` vanish at ``t_N`` (the car's wheel rate ``(0,)``; the snakeboard's board speed
-    ``s``, ``(2,)``). An index outside the system's minimal velocities is an error."""
+    ``s``, ``(2,)``). An index outside the system's minimal velocities is an error.
+    ``weight``: its penalty weight in ``optimize`` (default 1; ``solve`` holds it exactly)."""
 
     indices: tuple[int, ...] = eqx.field(static=True, converter=_indices)
     weight: Array = eqx.field(default=1.0, converter=asarray)
@@ -187,7 +188,7 @@ class NetDisplacement(AbstractTerminalConstraint):
 
     Args:
         dx, dy, dtheta: the targets; ``None`` leaves a component free.
-        weight: penalty weight.
+        weight: penalty weight in ``optimize`` (default 1; ``solve`` holds the constraint exactly).
     """
 
     target: Float[Array, " k"]
@@ -215,7 +216,8 @@ class NetDisplacement(AbstractTerminalConstraint):
 
 
 class TerminalConstraint(AbstractTerminalConstraint):
-    """A user equality ``fn(q_N, qdot_N) = 0`` at the last node (``fn`` returns a vector)."""
+    """A user equality ``fn(q_N, qdot_N) = 0`` at the last node (``fn`` returns a vector).
+    ``weight``: its penalty weight in ``optimize`` (default 1; ``solve`` holds it exactly)."""
 
     fn: Callable
     weight: Array = eqx.field(default=1.0, converter=asarray)
@@ -230,7 +232,8 @@ class TerminalConstraint(AbstractTerminalConstraint):
 class PathConstraint(AbstractPathConstraint):
     """A user inequality ``fn(t, q, qdot, c) <= 0`` at every node (``fn`` returns a scalar or a
     vector): an obstacle (``r^2 - |p - p_obs|^2 <= 0``), a speed limit, a state-dependent
-    control bound. Held at the nodes; between them the motion is not checked."""
+    control bound. Held at the nodes; between them the motion is not checked.
+    ``weight``: its penalty weight in ``optimize`` (default 1; ``solve`` holds it exactly)."""
 
     fn: Callable
     weight: Array = eqx.field(default=1.0, converter=asarray)
@@ -244,7 +247,8 @@ class PathConstraint(AbstractPathConstraint):
 
 class InitialRest(AbstractInitialConstraint):
     """The minimal velocities with indices ``indices`` vanish at the (free) start: the anchor of
-    a periodic gait (the snakeboard's board speed ``s``: ``(2,)``; the car's wheel rate: ``(0,)``)."""
+    a periodic gait (the snakeboard's board speed ``s``: ``(2,)``; the car's wheel rate: ``(0,)``).
+    ``weight``: its penalty weight in ``optimize`` (default 1; ``solve`` holds it exactly)."""
 
     indices: tuple[int, ...] = eqx.field(static=True, converter=_indices)
     weight: Array = eqx.field(default=1.0, converter=asarray)
@@ -254,7 +258,8 @@ class InitialRest(AbstractInitialConstraint):
 
 
 class InitialConstraint(AbstractInitialConstraint):
-    """A user equality ``fn(q_0, qdot_0, c_0) = 0`` on the (free) start."""
+    """A user equality ``fn(q_0, qdot_0, c_0) = 0`` on the (free) start.
+    ``weight``: its penalty weight in ``optimize`` (default 1; ``solve`` holds it exactly)."""
 
     fn: Callable
     weight: Array = eqx.field(default=1.0, converter=asarray)
@@ -278,7 +283,7 @@ class Periodic(AbstractConstraint):
 
     Args:
         cyclic: names of the cyclic shape coordinates (default: none).
-        weight: penalty weight of the return conditions.
+        weight: penalty weight of the return conditions in ``optimize`` (default 1).
     """
 
     cyclic: tuple[str, ...] = eqx.field(static=True, default=())

@@ -189,7 +189,15 @@ def turn_gait(
     guesses at the torque bounds' full amplitude (default 16; all 16 converged, 2 to 0.10082 rad
     per cycle, IPOPT's best of 25 on the same formulation being 0.1008173; at 0.7 of the bounds
     the best was 0.0805),
-    which ``lc.solve`` runs in one program, returning the best converged one."""
+    which ``lc.solve`` runs in one program, returning the best converged one.
+
+    Args:
+        system: default ``lj.Snakeboard()``.
+        period: T (s, default pi). n_steps: nodes per period (default 100).
+        max_torque, max_steer: as :func:`drive_gait` (defaults 0.1 N m and 1 rad).
+        starts: the number of random periodic guesses (default 16).
+        integrator: default ``lj.RDP(order=4)``.
+    """
     sb = system if system is not None else Snakeboard()
     return make_gait(
         sb,

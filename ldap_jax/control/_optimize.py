@@ -319,6 +319,8 @@ def multistart(
 ) -> OptimizeResult:
     """:func:`optimize` from a batch of initial guesses at once (``jax.vmap`` over the leading
     axis of every leaf of ``params0``), one jitted ``lax.scan`` over all iterations.
+    ``optimizer`` (default :func:`default_optimizer`, L-BFGS) and ``tol`` (default 0) as for
+    :func:`optimize`.
 
     Returns:
         :class:`OptimizeResult` with a leading batch axis (``params``, ``loss`` (B,),

@@ -68,7 +68,8 @@ def parallel_park(
     distance sideways) in ``t_final`` (s, default 10) with ``n_steps`` steps (default 100),
     minimising the effort (wheel torque scaled by the wheel's inertia, steering rate by 0.5 1/s);
     per-step controls; ``|sigma| <= max_steer`` (default 1; ``sigma = tan`` of the steering angle).
-    Model: ``integrator`` (default ``lj.RDP(order=4)``); ``system`` default ``lj.Car()``."""
+    Model: ``integrator`` (default ``lj.RDP(order=4)``); ``system`` default ``lj.Car()``;
+    ``checkpoint`` as for :func:`~ldap_jax.simulate` (default ``False``)."""
     car = system if system is not None else Car()
     l = float(car.l)
     return _car_to_rest(
@@ -101,7 +102,8 @@ def u_turn(
     at ``(0, width/4, pi)`` in ``t_final`` (default 12 s, ``n_steps`` default 120) with the rear
     axle inside ``|y| <= width/2`` and ``|sigma| <= max_steer`` (default 1; minimum turning radius
     ``l / max_steer``: with the defaults a plain U-turn needs 1 m, so the car must back up),
-    minimising the effort. Model: ``integrator`` (default ``lj.RDP(order=4)``)."""
+    minimising the effort. Model: ``integrator`` (default ``lj.RDP(order=4)``) on ``system``
+    (default ``lj.Car()``); ``checkpoint`` as for :func:`~ldap_jax.simulate` (default ``False``)."""
     car = system if system is not None else Car()
     return _car_to_rest(
         "u_turn",
@@ -138,7 +140,12 @@ def forward_gait(
 
     This is an open-loop start from rest, not a periodic gait: the motion it finds is not a limit
     cycle and its bounds are penalties. For a periodic gait with hard constraints use
-    :func:`~ldap_jax.control.drive_gait` and :func:`~ldap_jax.control.solve`."""
+    :func:`~ldap_jax.control.drive_gait` and :func:`~ldap_jax.control.solve`.
+
+    Defaults: ``system`` ``lj.Snakeboard()``, ``n_steps`` 100, ``max_torque`` 0.1 N m per channel,
+    ``max_steer`` 1 rad, ``n_terms`` 1, ``frequency`` 2 rad/s (the initial guess's),
+    ``integrator`` ``lj.RDP(order=4)``, ``checkpoint`` ``False`` (the rollout's memory policy in
+    reverse mode, as for :func:`~ldap_jax.simulate`)."""
     sb = system if system is not None else Snakeboard()
     torques = per_channel("max_torque", sb.control_names, max_torque)
     return make_task(
@@ -174,7 +181,10 @@ def reach(
     """Snakeboard reach: from rest at the origin to ``goal = (x, y, theta)`` (m, m, rad; default
     ``(2, 1, pi/2)``) with the board at rest (speed ``s = 0``) in ``t_final`` (default 16 s,
     ``n_steps`` default 160), minimising the effort; per-step torques (N m) initialised from a gait,
-    ``|f| <= max_torque``, ``|phi| <= max_steer``. Model: ``integrator`` (default ``lj.RDP(order=4)``)."""
+    ``|f| <= max_torque``, ``|phi| <= max_steer`` (defaults 0.1 N m and 1 rad). Model: ``integrator``
+    (default ``lj.RDP(order=4)``) on ``system`` (default ``lj.Snakeboard()``); ``frequency`` of the
+    initial gait guess (default 2 rad/s); ``checkpoint`` as for :func:`~ldap_jax.simulate`
+    (default ``False``)."""
     sb = system if system is not None else Snakeboard()
     torques = per_channel("max_torque", sb.control_names, max_torque)
     scale = np.asarray(list(torques.values()), float)

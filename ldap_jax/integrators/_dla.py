@@ -137,9 +137,9 @@ class DLA(AbstractAlphaIntegrator):
     fail (the physical root merges with a spurious one: a fold; ``docs/integrators.md`` section 4).
 
     Args:
-        alpha: quadrature point in [0, 1].
-        newton_iterations: Newton budget per step (iterations actually used: ``StepInfo``).
-        initial_guess: ``"euler"`` or ``"explicit"``.
+        alpha: quadrature point in [0, 1] (default 1/2).
+        newton_iterations: Newton budget per step (default 12; iterations actually used: ``StepInfo``).
+        initial_guess: ``"euler"`` (default) or ``"explicit"``.
         rtol: convergence tolerance on the residual norm, relative to
             ``1 + |p_k| + h |F|`` (default ``10 eps^0.75`` of the dtype).
 

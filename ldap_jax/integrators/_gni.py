@@ -85,8 +85,9 @@ class GNI(AbstractAlphaIntegrator):
     exact discrete work-energy balance holds (faithful variant).
 
     Args:
-        alpha: force quadrature point in [0, 1] (and the constraint point of ``"folded"``).
-        variant: ``"faithful"`` or ``"folded"``.
+        alpha: force quadrature point in [0, 1] (default 1/2; also the constraint point of
+            ``"folded"``).
+        variant: ``"faithful"`` (default) or ``"folded"``.
 
     Example:
         >>> traj = lj.simulate(sb, q0, qdot0, ctl, t_final=10.0, n_steps=1000, integrator=lj.GNI())

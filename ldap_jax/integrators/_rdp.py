@@ -103,18 +103,22 @@ class RDP(AbstractAlphaIntegrator):
     bounded over long runs (no drift).
 
     Args:
-        alpha: quadrature point in [0, 1].
-        retraction: ``"exp"`` or ``"cayley"``.
+        alpha: quadrature point in [0, 1] (default 1/2).
+        retraction: ``"exp"`` (default) or ``"cayley"``.
         order: 2, 4, 6 or 8 (default 2 at ``alpha = 1/2``, 1 otherwise). Orders above 2 need
             ``alpha = 1/2``. Order 8 reaches tight tolerances (1e-6 m and below over 10 s)
             for the least work.
         scheme: composition scheme for ``order > 2`` (a key of
-            ``ldap_jax.integrators.SCHEMES`` of that order).
-        dtau_order: ``1`` truncates ``dtau^-1`` to ``I - ad/2`` (the paper's explicit
+            ``ldap_jax.integrators.SCHEMES`` of that order; default ``"suzuki5"``, ``"kahan_li9"``,
+            ``"kahan_li17"`` for orders 4, 6, 8).
+        dtau_order: ``1`` (default) truncates ``dtau^-1`` to ``I - ad/2`` (the paper's explicit
             car/snakeboard schemes); ``None`` uses the exact ``dexp^-1`` (28) or ``dcay^-1`` (32);
             ``p >= 2`` truncates the series after ``ad^p``.
-        solver: ``"auto"`` (closed form where the system has one, else Newton) or ``"newton"``.
-        newton_iterations: Newton budget per step.
+        solver: ``"auto"`` (default: closed form where the system has one, else Newton) or ``"newton"``.
+        newton_iterations: Newton budget per step (default 20).
+        reverse_only: not a setting (default ``False``): set by the rollout of a program that
+            is not differentiated in forward mode, to run the closed-form kernels' hand-written
+            VJP; the values are the same.
 
     Raises:
         ValueError: a bad setting (the message names it).

@@ -189,7 +189,8 @@ def reference_batch(
     mesh: Mesh | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """High-accuracy reference: RK4 on the continuous equations with a fine step (at most
-    ``step``, a multiple of ``n_out`` steps), sampled at the ``n_out + 1`` output nodes.
+    ``step``, default 5e-3 s, a multiple of ``n_out`` steps), sampled at the ``n_out + 1`` output
+    nodes, the batch split over the devices of ``mesh`` (default: every device).
 
     A converged fine-step run instead of diffrax's adaptive Dopri8, which costs too much over
     10 minutes for 1000 maneuvers; :func:`~ldap_jax.study.run_study` estimates its error by

@@ -45,7 +45,7 @@ def sample_maneuvers(
 
     Uses the model's ``sample_maneuver`` (random sinusoidal controls producing parallel
     parking, sharp turns and winding; initial states on the constraints). For the snakeboard
-    with ``zero_steer_rate`` the steering phase is set so that ``phidot(0) = 0`` (see
+    with ``zero_steer_rate`` (default ``True``) the steering phase is set so that ``phidot(0) = 0`` (see
     :func:`_zero_steer_rate`): this keeps long coarse runs off the singularity ``cos(phi) = 0``.
 
     Raises:
@@ -65,7 +65,8 @@ def global_maneuvers(
     of member ``n - 1``). Member ``i`` is the same as ``sample_maneuvers(system, n, seed)``'s,
     up to the round-off of a batch of another size. Members are sampled in blocks of a fixed size
     (:data:`SAMPLE_BLOCK`): one compiled program for every batch size and number of devices, and
-    the same numbers whatever the number of processes.
+    the same numbers whatever the number of processes. ``zero_steer_rate`` (default ``True``) as
+    for :func:`sample_maneuvers`.
 
     Raises:
         ValueError: ``n < 1``.

@@ -43,8 +43,9 @@ class Car(AbstractClosedFormSystem):
         (I + m rho^2 + K rho^2 sigma^2 / l^2) psi_ddot = f_psi - K rho^2 sigma u_sigma psidot / l^2.
 
     Args:
-        m: mass. I: rear-wheel inertia. K: yaw inertia. rho: wheel radius.
-        l: distance between the axles. All positive.
+        m: mass (kg, default 1). I: rear-wheel inertia (kg m^2, default 0.1). K: yaw inertia
+            (kg m^2, default 0.2). rho: wheel radius (m, default 0.1).
+        l: distance between the axles (m, default 0.5). All positive.
     """
 
     m: Array = eqx.field(converter=physical_parameter, default=1.0)

@@ -74,8 +74,9 @@ class Snakeboard(AbstractClosedFormSystem):
     (:meth:`singular`).
 
     Args:
-        m: mass. l: half wheelbase. I: rotor inertia. J: inertia of one wheel set about its
-            steering axis. All positive, and ``I < m l^2`` (the board's yaw inertia is
+        m: mass (kg, default 1). l: half wheelbase (m, default 0.5). I: rotor inertia (kg m^2,
+            default 0.05). J: inertia of one wheel set about its steering axis (kg m^2, default
+            0.02). All positive, and ``I < m l^2`` (the board's yaw inertia is
             normalised so that ``J_board + I + 2 J = m l^2``).
     """
 
