@@ -13,7 +13,7 @@ import numpy as np
 from jax.ad_checkpoint import checkpoint_name
 from jaxtyping import Array
 
-__all__ = ["sincos", "SAVED", "saved", "materialise", "plain", "plain_active"]
+__all__ = ["sincos", "SAVED", "saved", "materialise", "plain", "plain_active", "safe_norm", "safe_vnorm"]
 
 import contextlib
 
@@ -93,12 +93,14 @@ def _sincos_impl(x: Array, whole: bool) -> tuple[Array, Array]:
     c = (1.0 - 0.5 * z) + z * z * pc
     if not whole:
         s, c = s / one, c / one
-    q = n.astype(jnp.int32) & 3
-    swap = (q & 1) == 1
+    # the quadrant n mod 4, in floating point: exact for every integer-valued n (an int32 cast
+    # wrapped at |x| > 3.4e9, turning the result by a quarter turn)
+    q = n - 4.0 * jnp.floor(0.25 * n)
+    swap = (q == 1.0) | (q == 3.0)
     sin = jnp.where(swap, c, s)
     cos = jnp.where(swap, s, c)
-    sin = jnp.where(q >= 2, -sin, sin)
-    cos = jnp.where((q == 1) | (q == 2), -cos, cos)
+    sin = jnp.where(q >= 2.0, -sin, sin)
+    cos = jnp.where((q == 1.0) | (q == 2.0), -cos, cos)
     if whole:
         sin, cos = sin / one, cos / one
     return sin, cos
@@ -183,3 +185,19 @@ def materialise_result(result: Any) -> Any:
     f = code.astype(jnp.float32)
     f = f / (jax.lax.stop_gradient(f) * 0 + 1)
     return eqx.tree_at(lambda r: r._value, result, f.astype(code.dtype))
+
+
+def safe_norm(*xs: Array) -> Array:
+    """``sqrt(x_1^2 + ... + x_n^2)`` of scalars, with derivative 0 (not NaN) where every ``x_i``
+    vanishes: the residual diagnostics are norms of quantities that are exactly zero on a run at
+    rest, and ``sqrt``'s infinite slope at 0 made their derivatives NaN there."""
+    s = sum(x * x for x in xs)
+    pos = s > 0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, s, 1.0)), 0.0)
+
+
+def safe_vnorm(v: Array) -> Array:
+    """The Euclidean norm of a vector, as :func:`safe_norm` (derivative 0 at ``v = 0``)."""
+    s = jnp.sum(v * v)
+    pos = s > 0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, s, 1.0)), 0.0)

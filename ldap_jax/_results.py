@@ -45,7 +45,8 @@ class RESULTS(eqx.Enumeration):
         "reduce the step, or raise `divergence` if the growth is physical."
     )
     invalid_input = (
-        "an input is invalid: t_final <= t0 or a non-finite time (simulate), a non-positive or "
+        "an input is invalid: t_final <= t0, a non-finite time or a step (t_final - t0) / n_steps "
+        "that is 0 in the run's dtype (simulate), a non-positive or "
         "non-finite step h (discretize), non-finite, decreasing "
         "or early sample times ts (reference), a non-finite initial state, non-finite controls, "
         "qdot0 violating the constraints, a physical parameter out of range (e.g. a non-positive "

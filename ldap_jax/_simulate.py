@@ -9,9 +9,10 @@ from typing import Any
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from ._compilation_cache import jit, note_program, program_key
+from ._compilation_cache import asarray, jit, note_program, program_key
 from ._controls import AbstractControls, Constant
 from ._policy import AbstractPolicy, LinearPolicy, Policy
 from ._results import RESULTS
@@ -25,6 +26,7 @@ from ._validation import (
     check_positive_number,
     check_scalar,
     input_result,
+    is_concrete,
     raise_if_concrete,
 )
 from .integrators import RDP, AbstractIntegrator
@@ -134,6 +136,11 @@ def check_problem(
     d = system.n_config
     q0 = check_array("q0", q0, (d,), f"for {type(system).__name__}")
     qdot0 = check_array("qdot0", qdot0, (d,), f"for {type(system).__name__}")
+    if q0.dtype != qdot0.dtype:  # the run's common dtype, in which the checks must also be made
+        dtype = jnp.result_type(q0, qdot0)
+        q0, qdot0 = (
+            asarray(np.asarray(x), dtype) if is_concrete(x) else x.astype(dtype) for x in (q0, qdot0)
+        )
     if jnp.result_type(q0, qdot0) == jnp.float32 and not jax.config.jax_enable_x64:
         warnings.warn(
             f"ldap_jax.{caller} runs in float32 because jax_enable_x64 is off; enable float64 "
@@ -263,7 +270,7 @@ def simulate(
     checkpoint = check_checkpoint(checkpoint)
     if divergence is not None:
         divergence = check_positive_number("divergence", divergence, allow_inf=True)
-    raise_if_concrete(system, integrator, q0, qdot0, controls, t0, t_final, check_constraints)
+    raise_if_concrete(system, integrator, q0, qdot0, controls, t0, t_final, check_constraints, n_steps)
     settings = dict(
         forward_mode=_forward_mode((system, integrator, q0, qdot0, controls, t0, t_final)),
         traced_parameters=_traced((system, integrator, t0, t_final)),
@@ -378,7 +385,7 @@ def _simulate(
     h = (t_final - t0) / n_steps
     c0 = controls(t0, q0, qdot0) if isinstance(controls, AbstractPolicy) else controls(t0)
     qdot0 = system.consistent_qdot(q0, qdot0, c0)
-    initial = input_result(system, integrator, q0, qdot0, t0, t_final, check_constraints, controls)
+    initial = input_result(system, integrator, q0, qdot0, t0, t_final, check_constraints, controls, n_steps)
     out = rollout(
         system,
         integrator,

@@ -160,9 +160,12 @@ def _constraint_violation(system, q0, qdot0) -> Array:
     return system.constraint_residual(q0, qdot0)
 
 
-def raise_if_concrete(system, integrator, q0, qdot0, controls, t0, t_final, check_constraints: bool) -> None:
+def raise_if_concrete(
+    system, integrator, q0, qdot0, controls, t0, t_final, check_constraints: bool, n_steps: int | None = None
+) -> None:
     """The value checks, raised now (``ValueError`` naming the argument) for every input whose
-    value is known at trace time (concrete, even inside an outer ``jit`` over other arguments)."""
+    value is known at trace time (concrete, even inside an outer ``jit`` over other arguments);
+    with ``n_steps``, also a step ``(t_final - t0) / n_steps`` that is positive in the run's dtype."""
     with jax.ensure_compile_time_eval():
         if is_concrete(t0) and not np.isfinite(float(np.asarray(t0))):
             raise ValueError(f"'t0' must be finite, got {t0}")
@@ -174,6 +177,14 @@ def raise_if_concrete(system, integrator, q0, qdot0, controls, t0, t_final, chec
                 raise ValueError(
                     f"'t_final' must exceed t0 (a positive step), got t_final={t_final}, t0={t0}"
                 )
+            if is_concrete(t0) and n_steps is not None:
+                dtype = jnp.result_type(q0, qdot0)
+                h = (np.asarray(t_final, dtype) - np.asarray(t0, dtype)) / dtype.type(n_steps)
+                if not h > 0:
+                    raise ValueError(
+                        f"'t_final' - 't0' = {tf_ - float(np.asarray(t0)):.3g} over n_steps={n_steps} "
+                        f"gives a step of 0 in {dtype.name}: lengthen the run or use fewer steps"
+                    )
         for name, x in (("q0", q0), ("qdot0", qdot0)):
             if is_concrete(x) and not bool(np.all(np.isfinite(np.asarray(x)))):
                 raise ValueError(f"'{name}' must be finite, got {np.asarray(x)}")
@@ -302,7 +313,15 @@ def initial_violation(system, q0, qdot0, controls, t0) -> tuple[Array, Array, Ar
 
 
 def input_result(
-    system, integrator, q0, qdot0, t0, t_final, check_constraints: bool, controls: Any = None
+    system,
+    integrator,
+    q0,
+    qdot0,
+    t0,
+    t_final,
+    check_constraints: bool,
+    controls: Any = None,
+    n_steps: int | None = None,
 ) -> RESULTS:
     """The value checks on traced values, as a result code (``invalid_input`` or ``successful``):
     finite times with ``t_final > t0``, a finite initial state, finite controls (every floating
@@ -313,6 +332,8 @@ def input_result(
     ok = jnp.isfinite(t0)
     if t_final is not None:
         ok = ok & jnp.isfinite(t_final) & (t_final > t0)
+        if n_steps is not None:  # a step that underflows to 0 in the run's dtype
+            ok = ok & ((t_final - t0) / n_steps > 0)
     ok = ok & jnp.all(jnp.isfinite(q0)) & jnp.all(jnp.isfinite(qdot0)) & _finite_leaves(controls)
     for _, cond in system.parameter_checks():
         ok = ok & jnp.all(cond)

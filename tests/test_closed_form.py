@@ -264,6 +264,16 @@ def test_sincos_accuracy_and_derivative():
     np.testing.assert_allclose(dc, -np.sin(np.linspace(-3, 3, 7)), rtol=1e-15, atol=1e-15)
 
 
+def test_sincos_quadrant_beyond_the_int32_range():
+    """The quadrant ``round(2x/pi) mod 4`` is taken in floating point: an int32 cast wrapped once
+    ``2x/pi`` passed 2^31 (|x| > 3.37e9: controls timed from Unix time at 2 rad/s), turning sin and
+    cos by a quarter turn with no error reported."""
+    x = np.array([3.3e9, 3.374e9, 3.4e9, -5e9, 1e10, 2.0**40, 1.75e9 * 2])
+    s, c = jax.jit(sincos)(x)
+    np.testing.assert_allclose(np.asarray(s), np.sin(x), atol=1e-6)
+    np.testing.assert_allclose(np.asarray(c), np.cos(x), atol=1e-6)
+
+
 def test_dispatch():
     """RDP runs the kernel of every closed-form system (subclasses included) with dtau_order=1 and
     solver="auto"; anything else takes the Newton step."""
@@ -591,12 +601,15 @@ def test_snakeboard_rollout_gradient_with_the_hand_written_vjp():
 
     grad = eqx.filter_jit(jax.grad(_snakeboard_losses, argnums=(0, 1, 2, 3, 4)))
 
-    def both(a, b, c, mask):
-        mine = grad(sb, a, b, c, jnp.asarray(6.0), mask)
-        ref = grad(ad, a, b, _autodiff_controls(c), jnp.asarray(6.0), mask)
+    def both(a, b, c, mask, t_final=6.0):
+        mine = grad(sb, a, b, c, jnp.asarray(t_final), mask)
+        ref = grad(ad, a, b, _autodiff_controls(c), jnp.asarray(t_final), mask)
         return mine, ref
 
+    # per-step rotations h xi_0 up to 0.023 (the exponential map's series branch), then over 40 s
+    # up to 0.26, 13% of them above the series' threshold (0.105): both branches of the VJP
     _leaves_close(*both(q0, qdot0, ctl, False), "random maneuvers")
+    _leaves_close(*both(q0, qdot0, ctl, False, 40.0), "random maneuvers, coarse steps")
     traj = jax.vmap(lambda a, b, c: lj.simulate(sb, a, b, c, t_final=6.0, n_steps=200))(*batch)
     assert (code(traj.result)[:4] == code(lj.RESULTS.successful)).all()
     assert code(traj.result)[4] == code(lj.RESULTS.singular)

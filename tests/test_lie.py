@@ -191,3 +191,50 @@ def test_finite_gradients_at_zero_rotation():
         v = jnp.array([w, 0.3, 0.2])
         np.testing.assert_allclose(_mat(lie.exp(v)), scipy.linalg.expm(np.asarray(lie.hat(v))), atol=1e-14)
         np.testing.assert_allclose(lie.dexp_inv(v), lie.dtau_inv(v, "exp", 8), atol=1e-14)
+
+
+def _series(coef, w, n_terms=12):
+    """``sum_k coef(k) w^k`` over the first terms with a nonzero coefficient (float64; exact to
+    round-off for |w| <= 0.5 with these coefficients)."""
+    return sum(coef(k) * w**k for k in range(2 * n_terms + 2) if coef(k) != 0.0)
+
+
+def test_second_derivatives_across_the_small_angle_threshold():
+    """``lie.exp``'s ``(1 - cos w) / w`` and ``lie.dexp_inv``'s ``beta = (1 - (w/2) cot(w/2)) / w``
+    lose ``eps / w^(k+2)`` of their k-th derivatives to cancellation above the Taylor threshold:
+    their second derivatives against the series differentiated term by term (Bernoulli numbers from
+    SciPy), below, at and above the threshold (0.105 in float64) and at the old one (1.2e-4, where
+    the second derivative had no correct digit), to 1e-8 relative."""
+    from math import factorial
+
+    from scipy.special import bernoulli
+
+    bern = bernoulli(40)
+    # b(w) = (1 - cos w)/w = sum_n (-1)^n w^(2n+1) / (2n+2)!; b'' term by term
+    b2 = lambda k: 0.0 if k % 2 == 0 else (-1) ** ((k + 1) // 2) * (k + 2) * (k + 1) / factorial(k + 3)  # noqa: E731
+    # beta(w) = -sum_{n>=1} (-1)^n B_2n w^(2n-1) / (2n)!; beta'' term by term
+    beta2 = (  # noqa: E731
+        lambda k: (
+            0.0
+            if k % 2 == 0
+            else -((-1) ** ((k + 3) // 2)) * bern[k + 3] * (k + 2) * (k + 1) / factorial(k + 3)
+        )
+    )
+    h_exp = jax.jit(jax.hessian(lambda v: lie.exp(v)[1]))  # = b(w) at v = (w, 1, 0)
+    h_beta = jax.jit(jax.hessian(lambda v: lie.dexp_inv(v)[1, 0]))  # = beta(w) there
+    for w in (1e-6, 1.2e-4, 1.23e-4, 1.5e-4, 1e-3, 1e-2, 0.1, 0.1052, 0.11, 0.2, 0.4):
+        v = jnp.array([w, 1.0, 0.0])
+        for name, fn, coef in (("exp", h_exp, b2), ("dexp_inv", h_beta, beta2)):
+            exact = _series(coef, w)
+            got = float(fn(v)[0, 0])
+            assert abs(got - exact) <= 1e-8 * abs(exact), (name, w, got, exact)
+
+
+def test_integer_tangents_are_converted():
+    """Integer tangents give the float results of the same values (``exp`` and ``dexp_inv`` read
+    their dtype's epsilon)."""
+    v = np.array([1, 2, -1])
+    for fn in (lie.exp, lie.dexp_inv, lie.log, lie.cay):
+        np.testing.assert_allclose(fn(v), fn(v.astype(float)), rtol=1e-15, atol=1e-15)
+    got, want = SE2.exp(v).unit_complex_xy, SE2.exp(v.astype(float)).unit_complex_xy
+    np.testing.assert_allclose(got, want, atol=1e-15)

@@ -565,3 +565,55 @@ def test_float32_without_x64_is_warned_by_name():
         with pytest.warns(UserWarning, match="ldap_jax.reference runs in float32"):
             with pytest.raises(ValueError, match="'rtol'"):
                 lj.reference(car, z, z, None, jnp.array([0.0, 1.0], jnp.float32), rtol=-1.0)
+
+
+def test_mixed_dtypes_are_checked_in_the_runs_dtype():
+    """``q0`` in float32 with ``qdot0`` in float64 runs in float64 (JAX's promotion), so the
+    up-front constraint check is made there: ``qdot0`` built on the float64 pose violates the
+    constraints at the float32-rounded one by 1e-8, a ``ValueError`` naming it (as for the other
+    order), not a run of NaN nodes reported as ``invalid_input`` on traced values. (JAX's standard
+    promotion, a user's default; the suite's strict promotion refuses mixed dtypes outright.)"""
+    with jax.numpy_dtype_promotion("standard"):
+        _mixed_dtypes()
+
+
+def _mixed_dtypes():
+    car = lj.Car()
+    q0 = np.array([0.1, -0.2, 0.3, 0.0, 0.2])
+    v0 = jax.device_put(np.array([5.0]))
+    qdot0 = np.asarray(car.qdot_from_velocities(jax.device_put(q0), v0, np.zeros(2)))
+    for a, b in ((q0.astype(np.float32), qdot0), (q0, qdot0.astype(np.float32))):
+        with pytest.raises(ValueError, match="'qdot0' violates the constraints"):
+            lj.simulate(car, a, b, t_final=1.0, n_steps=8, diagnostics=False)
+    # on the constraints at the float32 pose, the run is float64 and succeeds
+    q32 = q0.astype(np.float32)
+    qdot0 = car.qdot_from_velocities(jax.device_put(q32.astype(np.float64)), jnp.array([5.0]), jnp.zeros(2))
+    traj = lj.simulate(car, q32, qdot0, t_final=1.0, n_steps=8, diagnostics=False)
+    assert traj.q.dtype == jnp.float64 and not bool(traj.failed)
+
+
+def test_a_step_that_underflows_to_zero_is_refused():
+    """``t_final - t0 > 0`` whose step ``(t_final - t0) / n_steps`` is 0 in the run's dtype: a
+    ``ValueError`` naming ``t_final`` eagerly, ``invalid_input`` under ``jit``."""
+    sb = SYSTEMS["snakeboard"]
+    z = np.zeros(5)
+    with pytest.raises(ValueError, match="'t_final' - 't0' .* gives a step of 0 in float64"):
+        lj.simulate(sb, z, z, t_final=5e-324, n_steps=4, diagnostics=False)
+    run = jax.jit(lambda tf: lj.simulate(sb, z, z, t_final=tf, n_steps=4, diagnostics=False).result)
+    assert code(run(5e-324)) == code(lj.RESULTS.invalid_input)
+    assert code(run(1e-300)) == code(lj.RESULTS.successful)
+
+
+def test_residual_diagnostics_have_finite_derivatives_at_rest():
+    """The step and constraint residuals are norms of quantities that vanish on a run at rest;
+    their derivatives there are 0 in both modes (``sqrt``'s slope at 0 made them NaN)."""
+    sb = SYSTEMS["snakeboard"]
+
+    def loss(p):
+        q0 = jnp.zeros(5).at[0].set(p[0])
+        traj = lj.simulate(sb, q0, jnp.zeros(5), lj.Constant(jnp.stack([p[1], 0.0])), t_final=1.0, n_steps=4)
+        return jnp.stack([jnp.sum(traj.constraint_residual), jnp.sum(traj.step_residual)])
+
+    p = jnp.zeros(2)
+    for jac in (jax.jacrev, jax.jacfwd):
+        np.testing.assert_array_equal(np.asarray(jax.jit(jac(loss))(p)), np.zeros((2, 2)))

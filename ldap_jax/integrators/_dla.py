@@ -17,6 +17,7 @@ from jaxtyping import Array
 
 from .._linalg import solve
 from .._newton import newton
+from .._numerics import safe_vnorm
 from ..systems._base import body_velocity
 from ._base import AbstractAlphaIntegrator, StepInfo, classify, finite, refuse_friction
 
@@ -204,7 +205,7 @@ class DLA(AbstractAlphaIntegrator):
 
         residual_fn = lambda z: self._residual(system, h, q, p, force, u_kin, z)  # noqa: E731
         rtol = self.rtol if self.rtol is not None else 10 * float(jnp.finfo(dtype).eps) ** 0.75
-        scale = 1.0 + jnp.linalg.norm(p) + jnp.abs(h) * jnp.linalg.norm(force)
+        scale = 1.0 + safe_vnorm(p) + jnp.abs(h) * safe_vnorm(force)
         z, info = newton(residual_fn, z0, tol=rtol * scale, max_iterations=self.newton_iterations)
 
         v = z[:d]

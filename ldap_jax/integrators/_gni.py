@@ -12,6 +12,7 @@ import numpy as np
 from jaxtyping import Array
 
 from .._linalg import solve
+from .._numerics import safe_vnorm
 from ..systems._base import body_velocity
 from ._base import AbstractAlphaIntegrator, StepInfo, classify, finite, refuse_friction
 from ._dla import constraint_rows, legendre_inverse, mass_matrix, step_inputs
@@ -144,9 +145,9 @@ class GNI(AbstractAlphaIntegrator):
             v = solve_at(solve_at(v_prev))
 
         omega = system.constraint_forms(q)
-        speed = jnp.linalg.norm(v)
+        speed = safe_vnorm(v)
         tiny = jnp.finfo(dtype).tiny
-        violation = jnp.linalg.norm(omega @ v) / jnp.where(speed > tiny, speed, 1.0)
+        violation = safe_vnorm(omega @ v) / jnp.where(speed > tiny, speed, 1.0)
         new = GNIState(q=q + h * v, v=v, p=mass @ v + h * a * force)
         result = classify(finite(new), system.singular(new.q, q), jnp.ones((), bool))
         return new, StepInfo(result=result, residual=violation, iterations=jnp.zeros((), jnp.int32))

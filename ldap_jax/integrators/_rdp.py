@@ -12,7 +12,7 @@ import numpy as np
 from jaxtyping import Array
 
 from .._newton import newton
-from .._numerics import materialise_result
+from .._numerics import materialise_result, safe_vnorm
 from .._results import RESULTS
 from ..lie import compose, dtau_inv, retract
 from ..systems import AbstractClosedFormSystem, AbstractSystem, Observation
@@ -344,7 +344,7 @@ class RDP(AbstractAlphaIntegrator):
             hor, vert = self._residual(system, h, r, *unpack(z), pu_force, state.mu)
             return jnp.concatenate([hor[dyn], vert])
 
-        scale = 1.0 + jnp.linalg.norm(pu_force) + jnp.linalg.norm(state.mu)
+        scale = 1.0 + safe_vnorm(pu_force) + safe_vnorm(state.mu)
         u_guess = state.u.at[kin].set(u_kin[kin]) if kin.size else state.u
         z, info = newton(
             residual,

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 from jaxtyping import Array
 
 from .._numerics import materialise, saved, sincos
-from ._se2 import exp_translation, small_angle
+from ._se2 import exp_parts, small_angle
 
 __all__ = [
     "Pose",
@@ -58,11 +58,10 @@ def pose_retract_exp(g: Pose, v: tuple[Array, Array, Array]) -> tuple[Pose, tupl
     w, v2, v3 = v
     _, ws = small_angle(w)
     sw, cw = saved(*materialise(*sincos(ws)))
-    dx, dy = exp_translation(w, v2, v3, sw, cw)
-    # the rotation itself needs no Taylor branch; only the safe stand-in must not leak into it
-    small = jnp.abs(w) < jnp.finfo(w.dtype).eps ** 0.25
-    cr = jnp.where(small, 1.0 - w**2 / 2.0 + w**4 / 24.0, cw)
-    sr = jnp.where(small, w - w**3 / 6.0 + w**5 / 120.0, sw)
+    # below the threshold the rotation comes from the series too: the safe stand-in's sine and
+    # cosine must not leak into it
+    ta, tb, cr, sr = exp_parts(w, sw, cw)
+    dx, dy = ta * v2 - tb * v3, tb * v2 + ta * v3
     return _compose(g, dx, dy, w, cr, sr), (sw, cw)
 
 

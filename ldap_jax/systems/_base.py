@@ -29,6 +29,7 @@ from jaxtyping import Array, Bool, Float
 
 from .._compilation_cache import asarray, compiled_unless_staged
 from .._linalg import solve
+from .._numerics import safe_vnorm
 
 __all__ = ["AbstractSystem", "Observation", "body_velocity", "spatial_velocity", "physical_parameter"]
 
@@ -400,7 +401,7 @@ class AbstractSystem(eqx.Module):
 
     def body_constraint_residual(self, r: Array, u: Array, xi: Array) -> Array:
         """``|C(r) [xi; u]|``: the constraint violation of the velocity ``(u, xi)``."""
-        return jnp.linalg.norm(self.body_constraints(r) @ jnp.concatenate([xi, u]))
+        return safe_vnorm(self.body_constraints(r) @ jnp.concatenate([xi, u]))
 
     @compiled_unless_staged
     def constraint_residual(self, q: Array, qdot: Array) -> Array:

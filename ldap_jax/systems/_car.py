@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
+from .._numerics import safe_norm
 from ..lie._scalar import Pose, body_to_qdot, dtau1_transpose, pose_from_xy_theta, pose_retract
 from ._base import physical_parameter, positive_checks, random_draws
 from ._closed_form import AbstractClosedFormSystem
@@ -199,7 +200,7 @@ class Car(AbstractClosedFormSystem):
         u_psi = self._solve(b, state.mu, state.sigma, sigma_a)
         u_psi = u_psi - horizontal(u_psi)[2] / self._wheel_inertia(state.sigma, sigma_a)
         hxi, mu_new, r = horizontal(u_psi)
-        scale = 1.0 + jnp.abs(b) + jnp.sqrt(sum(x**2 for x in state.mu))
+        scale = 1.0 + jnp.abs(b) + safe_norm(*state.mu)
         residual = jnp.abs(r) / scale
         new = CarKernelState(
             pose_retract(state.pose, hxi, retraction),

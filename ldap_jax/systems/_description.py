@@ -32,6 +32,7 @@ import numpy as np
 from jaxtyping import PyTree
 
 from .._linalg import solve
+from .._numerics import safe_vnorm
 from ..lie import ad
 from ._base import AbstractSystem, body_velocity, spatial_velocity
 
@@ -291,7 +292,7 @@ class System(AbstractSystem):
         e = self.symmetry_basis(r)
         if e.shape[1]:
             v = v - e @ solve(e.T @ e, e.T @ v)
-        return jnp.linalg.norm(v)
+        return safe_vnorm(v)
 
     # ------------------------------------------- continuous equations (derived)
     def _split(self, v, u_kin):

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from .._numerics import materialise, plain_active, saved, sincos
+from .._numerics import materialise, plain_active, safe_norm, saved, sincos
 from ..lie._scalar import (
     Pose,
     body_to_qdot,
@@ -18,7 +18,7 @@ from ..lie._scalar import (
     pose_from_xy_theta,
     pose_retract,
 )
-from ..lie._se2 import small_angle
+from ..lie._se2 import exp_parts, exp_series_derivative, small_angle
 from ._base import concrete, physical_parameter, positive_checks, random_draws
 from ._closed_form import AbstractClosedFormSystem
 
@@ -300,8 +300,8 @@ class Snakeboard(AbstractClosedFormSystem):
         a_k = (inertia * sk**2 / ml2, -inertia * sk * ck / (m * l))  # first column of A(phi_k)
         hor0 = dl_du[0] - (a_k[0] * jump[0] + a_k[1] * jump[1]) - b[0]
         vert = e1k[0] * jump[0] + e1k[1] * jump[1]
-        scale = 1.0 + jnp.sqrt(b[0] ** 2 + b[1] ** 2) + jnp.sqrt(sum(x**2 for x in state.mu))
-        residual = jnp.sqrt(hor0**2 + (dl_du[1] - b[1]) ** 2 + vert**2) / scale
+        scale = 1.0 + safe_norm(b[0], b[1]) + safe_norm(*state.mu)
+        residual = safe_norm(hor0, dl_du[1] - b[1], vert) / scale
         singular = (jnp.abs(cn) < jnp.finfo(cn.dtype).eps ** 0.25) | (cn * ck < 0)
         new = SnakeboardKernelState(
             pose_retract(state.pose, hxi, retraction),
@@ -340,7 +340,7 @@ class Snakeboard(AbstractClosedFormSystem):
             c,
             rotation=(state.pose.cos, state.pose.sin),
             momentum=nu[None],
-            constraint_residual=jnp.sqrt(rows[0] ** 2 + rows[1] ** 2),
+            constraint_residual=safe_norm(rows[0], rows[1]),
         )
 
     def kernel_node(self, state, c):
@@ -402,11 +402,7 @@ def _symmetric_bwd(res, ct):
     n2 = m * xi1
     small, ws = small_angle(w)
     sw0, cw0 = sincos(ws)  # the exponential map's rotation (its safe stand-in, as the step's)
-    big_a, big_b = sw0 / ws, (1.0 - cw0) / ws
-    ta = jnp.where(small, 1.0 - w**2 / 6.0 + w**4 / 120.0, big_a)
-    tb = jnp.where(small, w / 2.0 - w**3 / 24.0 + w**5 / 720.0, big_b)
-    cr = jnp.where(small, 1.0 - w**2 / 2.0 + w**4 / 24.0, cw0)
-    sr = jnp.where(small, w - w**3 / 6.0 + w**5 / 120.0, sw0)
+    ta, tb, cr, sr = exp_parts(w, sw0, cw0)
     dx, dy = ta * v2, tb * v2
     # the next state's incoming momenta mu = (n1, n2, -w n2 / 2) and pu
     pb0, pb1 = nb.pu
@@ -429,15 +425,12 @@ def _symmetric_bwd(res, ct):
     srb = -pcb * s + psb * c
     v2b = dxb * ta + dyb * tb
     tab, tbb = dxb * v2, dyb * v2
-    w_small = (
-        tab * (-w / 3.0 + w**3 / 30.0)
-        + tbb * (0.5 - w**2 / 8.0 + w**4 / 144.0)
-        + crb * (-w + w**3 / 6.0)
-        + srb * (1.0 - w**2 / 2.0 + w**4 / 24.0)
-    )
+    # below the threshold (d/dw of the series: cos' = -sin = -w sinc, sin' = cos = 1 - w cosc)
+    dsinc, dcosc = exp_series_derivative(w)
+    w_small = tab * dsinc + tbb * dcosc - crb * (w * ta) + srb * cr
     sw0b = tab / ws + srb
     cw0b = -tbb / ws + crb
-    w_big = -tab * big_a / ws - tbb * big_b / ws + cw0 * sw0b - sw0 * cw0b
+    w_big = -tab * ta / ws - tbb * tb / ws + cw0 * sw0b - sw0 * cw0b
     wb = wb + jnp.where(small, w_small, w_big)
     # a division by a runtime 1 marks a value "expensive" for XLA's fusion pass, which then computes
     # it once instead of fusing the chain that makes it into every consumer
