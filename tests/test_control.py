@@ -530,16 +530,57 @@ def test_sensitivities_match_finite_differences_of_resolves(small_park):
     np.testing.assert_allclose(dcost[1], (float(cp) - float(cm)) / (2 * eps), rtol=1e-4)
 
 
+@PARK40_GROUP
+def test_sensitivity_to_an_active_bound_at_tight_tolerances(small_park):
+    """d(optimal effort)/d(steering bound) with the bound |sigma| <= 0.3 active, against central
+    differences of re-solves, at tolerances 1e-8 and 1e-12 (rtol 1e-7). The bound multipliers'
+    complementarity at the returned point, not the barrier parameter, weights the right-hand side:
+    with the barrier parameter the derivative drifted as the tolerance tightened (1e-8 at
+    tol=1e-8, 2.7e-6 at 1e-10, 3e-4 at 1e-12)."""
+    task, p0 = small_park
+    b = task.bounds
+
+    def solve(s, tol):
+        bounds = lc.Bounds(b.q_lower.at[4].set(-s), b.q_upper.at[4].set(s), b.u_lower, b.u_upper)
+        return lc.solve(task.with_options(bounds=bounds), p0, tol=tol)
+
+    s0, eps = 0.3, 1e-5
+    sol = solve(s0, 1e-12)
+    assert bool(sol.converged)
+    q0, qdot0 = task.initial_state(sol.params)
+    traj = lj.simulate(
+        task.system,
+        q0,
+        qdot0,
+        task.controls(sol.params),
+        t_final=task.t_final,
+        n_steps=task.n_steps,
+        integrator=task.integrator,
+        diagnostics=False,
+    )
+    assert np.max(np.abs(np.asarray(traj.q)[:, 4])) > s0 - 1e-6  # the bound is active
+    fd = (float(solve(s0 + eps, 1e-12).cost) - float(solve(s0 - eps, 1e-12).cost)) / (2 * eps)
+    for tol in (1e-8, 1e-12):
+        g = float(jax.grad(lambda s, tol=tol: solve(s, tol).cost)(jnp.asarray(s0)))
+        assert abs(g - fd) <= 1e-7 * abs(fd), (tol, g, fd)
+
+
+#: the car's masses of the members of :func:`vmapped_park` (members 3 and 4 invalid)
+PARK_MASSES = np.array([1.0, 1.0, 1.0, -1.0, 0.0, 1.0])
+
+
 @pytest.fixture(scope="module")
 def vmapped_park(small_park):
     """One vmapped solve of the small parallel_park over goals and the car's mass (traced: no
     construction-time check), read by two tests (one compiled program instead of a vmap over the
     goals and another over the masses): members 0-2 are three goals at the default mass, members
-    3 and 4 the first goal at the invalid masses -1 and 0."""
+    3 and 4 the first goal at the invalid masses -1 and 0, member 5 a goal with a NaN ``x``."""
     task, p0 = small_park
-    offsets = np.array([[0.0, 0.0, 0.0], [0.05, 0.01, 0.0], [-0.05, 0.0, 0.02], [0.0] * 3, [0.0] * 3])
+    offsets = np.array(
+        [[0.0, 0.0, 0.0], [0.05, 0.01, 0.0], [-0.05, 0.0, 0.02], [0.0] * 3, [0.0] * 3, [np.nan, 0, 0]]
+    )
     goals = task.goal[None] + jax.device_put(offsets)
-    masses = jax.device_put(np.array([1.0, 1.0, 1.0, -1.0, 0.0]))
+    masses = jax.device_put(PARK_MASSES)
     batch = jax.vmap(lambda g, m: lc.solve(task.with_options(goal=g, system=lj.Car(m=m)), p0))(goals, masses)
     return goals, batch
 
@@ -854,15 +895,16 @@ def test_bad_arguments():
 @PARK40_GROUP
 def test_solve_flags_invalid_traced_parameters_and_nan_gradients_of_failures(small_park, vmapped_park):
     """Under vmap over the car's mass [1, -1, 0] (traced: no construction-time check; members 0, 3
-    and 4 of the shared vmapped solve), the solve of each invalid member ends with invalid_input
-    and converged=False, the valid one converges; and the derivative of a solve that did not
-    converge (max_iterations=1) is NaN, not a finite number that looks like a sensitivity (the
-    derivatives in goal and mass of the sensitivities test: its compiled programs, other values)."""
+    and 4 of the shared vmapped solve), and over a goal with a NaN (member 5), the solve of each
+    invalid member ends with invalid_input and converged=False, the valid one converges; and the
+    derivative of a solve that did not converge (max_iterations=1) is NaN, not a finite number that
+    looks like a sensitivity (the derivatives in goal and mass of the sensitivities test: its
+    compiled programs, other values)."""
     task, p0 = small_park
     _, batch = vmapped_park
-    assert np.asarray(batch.converged)[[0, 3, 4]].tolist() == [True, False, False]
+    assert np.asarray(batch.converged)[[0, 3, 4, 5]].tolist() == [True, False, False, False]
     results = np.asarray(batch.result._value)
-    assert results[3] == results[4] == lc.SOLVER_RESULTS.invalid_input._value
+    assert results[3] == results[4] == results[5] == lc.SOLVER_RESULTS.invalid_input._value
 
     def effort(goal, m, iterations):
         return lc.solve(task.with_options(goal=goal, system=lj.Car(m=m)), p0, max_iterations=iterations).cost
@@ -881,7 +923,7 @@ def test_eager_vmapped_solve_traces_the_solver_once(small_park, vmapped_park):
     instead of 0.4 s)."""
     task, p0 = small_park
     goals, first = vmapped_park
-    masses = jax.device_put(np.array([1.0, 1.0, 1.0, -1.0, 0.0]))
+    masses = jax.device_put(PARK_MASSES)
     moved = jax.device_put(np.asarray(goals) + np.array([[0.01, 0.0, 0.0]]))
 
     def solve(g, m):

@@ -1106,6 +1106,33 @@ TASK_RAISES = {
     "with_options integrator": (lambda: PARK.with_options(integrator="rk4"), TypeError, "'integrator'"),
     "with_options goal": (lambda: PARK.with_options(goal=[1.0, 2.0]), ValueError, "'goal'"),
     "with_options system": (lambda: PARK.with_options(system=SB), TypeError, "'system'"),
+    # the interior-point solver holds bounds strictly: a start on a bound; a gait's fixed start
+    # (x = y = theta = 0, the cyclic coordinates at 0) outside its bounds; controls that do not
+    # start at the task's t = 0 (the solver's node k is at k h)
+    "q0 on a bound": (
+        lambda: PARK.with_options(bounds=lc.Bounds.of(CAR, q={"sigma": 1.0, "x": (0.0, 1.0)})),
+        ValueError,
+        "'q0'.*on or outside the bounds",
+    ),
+    "gait bounds exclude the start": (
+        lambda: lc.drive_gait(n_steps=N).with_options(
+            bounds=lc.Bounds.of(SB, q={"phi": 1.0, "x": (1.0, 2.0)})
+        ),
+        ValueError,
+        "'bounds'.*fixed start.*'x'",
+    ),
+    "gait bounds exclude a cyclic start": (
+        lambda: lc.drive_gait(n_steps=N).with_options(
+            bounds=lc.Bounds.of(SB, q={"phi": 1.0, "psi": (1.0, 2.0)})
+        ),
+        ValueError,
+        "'bounds'.*fixed start.*'psi'",
+    ),
+    "controls t0": (
+        lambda: _make_task(controls=lc.SampledControls(1.0, N, np.ones(2), t0=0.5)),
+        ValueError,
+        "'controls' start at t0=0.5",
+    ),
     # lc.solve: input checks (before compiling)
     "solve task": (lambda: lc.solve("parallel_park"), TypeError, "'task'"),
     "solve gait": (lambda: lc.solve(GAIT), ValueError, "SampledControls"),

@@ -254,6 +254,12 @@ def _check_controls(controls, system, n_steps, t_final) -> None:
         if controls.n_steps != n_steps:
             raise ValueError(f"'controls' samples {controls.n_steps} steps but 'n_steps' is {n_steps}")
         with jax.ensure_compile_time_eval():
+            if is_concrete(controls.t0) and float(controls.t0) != 0.0:
+                raise ValueError(
+                    f"'controls' start at t0={float(controls.t0)}, but a task runs from t = 0 (node k at "
+                    "k h): make the SampledControls with t0=0"
+                )
+        with jax.ensure_compile_time_eval():
             if is_concrete((controls.t_final, t_final)) and not np.isclose(
                 float(controls.t_final), float(t_final)
             ):
@@ -273,8 +279,21 @@ def _check_values(task: Task) -> None:
         viol = known_initial_violation(task.system, task.q0, task.qdot0, None, 0.0)[1]
         if not viol < 1e-10:
             raise ValueError(f"'qdot0' violates the constraints of {type(task.system).__name__} ({viol:.2e})")
-        if lo is not None and (np.any(np.asarray(task.q0) < lo) or np.any(np.asarray(task.q0) > hi)):
-            raise ValueError(f"'q0' {np.asarray(task.q0)} lies outside the bounds [{lo}, {hi}]")
+        if lo is not None and (np.any(np.asarray(task.q0) <= lo) or np.any(np.asarray(task.q0) >= hi)):
+            raise ValueError(
+                f"'q0' {np.asarray(task.q0)} lies on or outside the bounds [{lo}, {hi}] (the "
+                "interior-point solver holds every bound strictly: the start must lie inside them)"
+            )
+    fixed = task.fixed_start
+    if fixed is not None and lo is not None:
+        idx, val = fixed
+        if np.any(val <= lo[idx]) or np.any(val >= hi[idx]):
+            coords = ("x", "y", "theta", *task.system.shape_names)
+            names = [coords[i] for i in idx]
+            raise ValueError(
+                f"'bounds' must contain a gait's fixed start strictly: {names} start at 0, but their "
+                f"bounds are [{lo[idx]}, {hi[idx]}]"
+            )
     goal = task.goal
     if goal is not None and is_concrete(goal) and lo is not None:
         g = np.asarray(goal)

@@ -104,6 +104,16 @@ def _check_fn(con: Any, n_args: int, signature: str) -> None:
         ) from None
 
 
+def _pose_goal(x: Any) -> Array:
+    """A goal pose as a float array (integers converted), or a ``TypeError`` naming ``goal``."""
+    if isinstance(x, (jax.Array, jax.core.Tracer)):
+        return x if jnp.issubdtype(x.dtype, jnp.floating) else x.astype(jnp.result_type(float))
+    try:
+        return asarray(np.asarray(x, float))
+    except (TypeError, ValueError):
+        raise TypeError(f"TerminalPose: 'goal' must be a pose (x, y, theta) of numbers, got {x!r}") from None
+
+
 class AbstractConstraint(eqx.Module):
     """A constraint; its ``weight`` (a field of every concrete constraint) is its weight in the
     penalty form (:meth:`Task.loss`)."""
@@ -146,9 +156,17 @@ class TerminalPose(AbstractTerminalConstraint):
     """The pose at ``t_N`` equals ``goal = (x, y, theta)``: ``log(g_goal^-1 g_N) = 0``
     (:func:`pose_error`). Penalty: ``w_heading e_1^2 + w_position (e_2^2 + e_3^2)``."""
 
-    goal: Float[Array, " 3"] = eqx.field(converter=asarray)
+    goal: Float[Array, " 3"] = eqx.field(converter=_pose_goal)
     w_heading: Array = eqx.field(default=1.0, converter=asarray)
     w_position: Array = eqx.field(default=1.0, converter=asarray)
+
+    def __check_init__(self):
+        for name in ("w_heading", "w_position"):
+            check_known("TerminalPose", name, getattr(self, name), positive=False)
+        if self.goal.shape != (3,):
+            raise ValueError(
+                f"TerminalPose: 'goal' must be a pose (x, y, theta), got shape {self.goal.shape}"
+            )
 
     @property
     def weight(self) -> Array:  # type: ignore[override]
@@ -320,6 +338,9 @@ class Bounds(eqx.Module):
             ValueError: an unknown name, or ``lo >= hi``.
         """
         coords = ("x", "y", "theta", *system.shape_names)
+        for what, spec in (("q", q), ("u", u)):
+            if spec is not None and not isinstance(spec, dict):
+                raise TypeError(f"Bounds.of: '{what}' must be a dict of bounds by name, got {spec!r}")
         q_lo, q_hi = _by_name("q", q or {}, coords)
         u_lo, u_hi = _by_name("u", u or {}, tuple(system.control_names))
         return cls(asarray(q_lo), asarray(q_hi), asarray(u_lo), asarray(u_hi), weight)
@@ -353,15 +374,18 @@ def _by_name(what: str, spec: dict, names: tuple[str, ...]) -> tuple[np.ndarray,
     for key, value in spec.items():
         if key not in names:
             raise ValueError(f"Bounds: unknown {what} name {key!r}; the names are {names}")
-        if np.ndim(value) == 0:
-            a, b = -float(value), float(value)
-        elif np.shape(value) == (2,):
-            a, b = float(value[0]), float(value[1])
-        else:
+        try:
+            if np.ndim(value) == 0:
+                a, b = -float(value), float(value)
+            elif np.shape(value) == (2,):
+                a, b = float(value[0]), float(value[1])
+            else:
+                raise ValueError
+        except (TypeError, ValueError):
             raise ValueError(
                 f"Bounds: the {what} bound of {key!r} must be a number b ([-b, b]) or a pair "
                 f"(lo, hi), got {value!r}"
-            )
+            ) from None
         if not a < b:
             raise ValueError(f"Bounds: the {what} bound of {key!r} must have lower < upper, got ({a}, {b})")
         i = names.index(key)

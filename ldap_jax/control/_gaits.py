@@ -32,7 +32,7 @@ from ._build import make_task
 from ._constraints import AbstractConstraint, Bounds, InitialRest, NetDisplacement, Periodic, per_channel
 from ._parameterizations import SampledControls
 from ._task import Guess, Task
-from ._tasks import car_effort_scale
+from ._tasks import car_effort_scale, model_of
 from ._terms import AbstractTerm, Displacement, Effort, Rotation
 
 __all__ = ["make_gait", "drive_gait", "turn_gait", "sideways_gait", "racer_gait"]
@@ -104,6 +104,10 @@ def make_gait(
     """
     period, n_steps = _period(period), _steps(n_steps)
     m = system.n_controls
+    if bounds is not None and not isinstance(bounds, Bounds):
+        raise TypeError(
+            f"'bounds' must be lc.Bounds (e.g. lc.Bounds.of(system, q=..., u=...)), got {bounds!r}"
+        )
     if scale is None:
         scale = np.ones(m)
         if bounds is not None:
@@ -113,8 +117,11 @@ def make_gait(
         system,
         t_final=period,
         n_steps=n_steps,
-        objective=tuple(objective),
-        constraints=(Periodic(tuple(cyclic)), *constraints),
+        objective=(objective,) if isinstance(objective, AbstractTerm) else tuple(objective),
+        constraints=(
+            Periodic(tuple(cyclic)),
+            *((constraints,) if isinstance(constraints, AbstractConstraint) else constraints),
+        ),
         bounds=bounds,
         controls=SampledControls(period, n_steps, np.asarray(scale, float)),
         integrator=integrator,
@@ -156,7 +163,7 @@ def drive_gait(
         max_steer: bound of the steering angle ``phi`` (rad, default 1; or ``(lo, hi)``).
         integrator: default ``lj.RDP(order=4)``.
     """
-    sb = system if system is not None else Snakeboard()
+    sb = model_of(system, Snakeboard, "drive_gait")
     return make_gait(
         sb,
         period=period,
@@ -198,7 +205,7 @@ def turn_gait(
         starts: the number of random periodic guesses (default 16).
         integrator: default ``lj.RDP(order=4)``.
     """
-    sb = system if system is not None else Snakeboard()
+    sb = model_of(system, Snakeboard, "turn_gait")
     return make_gait(
         sb,
         period=period,
@@ -239,7 +246,7 @@ def sideways_gait(
             ones to 62.4809 (IPOPT's best of 5 on the same formulation: 62.4809).
         integrator: default ``lj.RDP(order=4)``.
     """
-    car = system if system is not None else Car()
+    car = model_of(system, Car, "sideways_gait")
     scale = car_effort_scale(car)
     return make_gait(
         car,

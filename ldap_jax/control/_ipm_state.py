@@ -29,7 +29,11 @@ class SOLVER_RESULTS(eqx.Enumeration):
         "the constraints could not be met: the iterates stopped at a point of locally least "
         "violation that violates them (e.g. a displacement per cycle too far for the bounds and period)"
     )
-    invalid_input = "invalid task values found in the run (a non-positive model parameter, empty bounds)"
+    invalid_input = (
+        "invalid task values found in the run (a non-positive model parameter, empty bounds, a start "
+        "not strictly inside the bounds, a goal that is not finite or lies outside them, a non-finite "
+        "displacement per cycle); build the task from known values to get the error naming the argument"
+    )
 
 
 class IPMOptions(NamedTuple):

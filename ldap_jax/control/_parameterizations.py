@@ -178,6 +178,8 @@ class SinusoidGait(AbstractParameterization):
         if self.scale.ndim != 1:
             raise ValueError(f"SinusoidGait: 'scale' must be 1-d (n_channels,), got {self.scale.shape}")
         self.frequency = asarray(frequency, float)
+        if is_concrete(self.frequency) and not np.all(np.isfinite(np.asarray(self.frequency))):
+            raise ValueError(f"SinusoidGait: 'frequency' must be finite, got {np.asarray(self.frequency)}")
         self.n_terms = n_terms
         self.shared_frequency = shared_frequency
 

@@ -19,6 +19,7 @@ from .._simulate import simulate
 from .._validation import check_positive_int, check_positive_number, is_concrete
 from ..integrators import RDP, AbstractIntegrator
 from . import _export
+from ._constraints import NetDisplacement
 from ._ipm import SOLVER_RESULTS, IPMOptions, IPMState, ipm_solve
 from ._kkt import objective, rollout
 from ._parameterizations import SampledControls
@@ -146,7 +147,7 @@ def solve(
             :class:`~ldap_jax.control.GaitParams` for a periodic task. A leading batch axis
             (``task.init()`` gives one when ``task.guess.starts > 1``) runs every guess (one
             after another in one program) and returns the converged solution of least cost
-            (``Solution.starts``).
+            (``Solution.starts``). A previous :class:`Solution` counts as its ``params``.
         tol: stopping tolerance on the scaled KKT error (> 0; default 1e-8).
         max_iterations: iteration budget (a positive integer; default 1000, IPOPT's is 3000).
         hessian: ``"base"`` (default): for ``lj.RDP(order=4, 6 or 8)`` the curvature of the dynamics
@@ -250,6 +251,8 @@ def _checked(task, params0, tol, max_iterations, hessian, curvature_tol, barrier
         )
     if params0 is None:
         params0 = task.init()
+    if isinstance(params0, Solution):  # a previous solve as the warm start: its parameters
+        params0 = params0.params
     params0, batched = _check_guess(task, params0)
     # tolerances and budget as arrays: new values must not recompile
     options = IPMOptions(
@@ -352,8 +355,10 @@ def _solver_view(task: Task) -> Task:
 
 
 def valid_task(task: Task) -> Array:
-    """Whether the task's values, traced or not, are valid: the model's parameter checks, a
-    positive finite horizon, bounds with lower below upper (no NaN), a finite start."""
+    """Whether the task's values, traced or not, are valid (what :func:`make_task` checks on known
+    values): the model's parameter checks, a positive finite horizon, bounds with lower below upper
+    (no NaN), a finite start strictly inside the bounds (a gait's fixed components of it too), a
+    finite goal within the bounds and finite prescribed displacements."""
     ok = jnp.isfinite(task.t_final) & (task.t_final > 0)
     for _, cond in task.system.parameter_checks():
         ok = ok & jnp.all(cond)
@@ -362,6 +367,16 @@ def valid_task(task: Task) -> Array:
     ok = ok & jnp.all(b.q_lower < b.q_upper) & jnp.all(b.u_lower < b.u_upper)
     if task.q0 is not None:
         ok = ok & jnp.all(jnp.isfinite(task.q0)) & jnp.all(jnp.isfinite(task.qdot0))
+        ok = ok & jnp.all(task.q0 > b.q_lower) & jnp.all(task.q0 < b.q_upper)
+    if task.fixed_start is not None:
+        idx, val = task.fixed_start
+        ok = ok & jnp.all(val > b.q_lower[idx]) & jnp.all(val < b.q_upper[idx])
+    if task.goal is not None:
+        g = task.goal
+        ok = ok & jnp.all(jnp.isfinite(g)) & jnp.all(g >= b.q_lower[:3]) & jnp.all(g <= b.q_upper[:3])
+    for con in task.constraints:
+        if isinstance(con, NetDisplacement):
+            ok = ok & jnp.all(jnp.isfinite(con.target))
     return ok
 
 

@@ -122,6 +122,17 @@ class Task(eqx.Module):
         return next((c for c in self.constraints if isinstance(c, Periodic)), None)
 
     @property
+    def fixed_start(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """A periodic task's fixed start components: ``(indices, values)`` of the configuration
+        (the group at the identity, ``x = y = theta = 0``, and the cyclic coordinates at 0), or
+        None for a task with a fixed start (all of ``q0``)."""
+        if self.periodic is None:
+            return None
+        cyclic = [3 + i for i, n in enumerate(self.system.shape_names) if n in self.periodic.cyclic]
+        idx = np.asarray([0, 1, 2, *cyclic], int)
+        return idx, np.zeros(idx.size)
+
+    @property
     def path_constraints(self) -> tuple[AbstractPathConstraint, ...]:
         return tuple(c for c in self.constraints if isinstance(c, AbstractPathConstraint))
 
@@ -147,6 +158,11 @@ class Task(eqx.Module):
         flat state's (the node velocity of the integrator)."""
         if self.periodic is None:
             return self.q0, self.qdot0
+        if not isinstance(params, GaitParams):
+            raise TypeError(
+                "'params' of a periodic task must be lc.GaitParams(controls, state), got "
+                f"{type(params).__name__}"
+            )
         from ._stage_form import layout
 
         dyn = discretize(self.system, self.integrator, h=self.h)

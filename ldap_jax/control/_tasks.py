@@ -18,6 +18,17 @@ from ._parameterizations import SampledControls, SinusoidGait
 from ._task import Guess, Task
 from ._terms import Effort, Forward
 
+
+def model_of(system, cls: type, task: str):
+    """A shipped task's model: ``cls()`` for ``None``, ``system`` when it is a ``cls``, else a
+    ``TypeError`` naming ``system``."""
+    if system is None:
+        return cls()
+    if not isinstance(system, cls):
+        raise TypeError(f"{task}: 'system' must be an lj.{cls.__name__}, got {type(system).__name__}")
+    return system
+
+
 __all__ = ["parallel_park", "u_turn", "forward_gait", "reach", "car_effort_scale"]
 
 
@@ -70,7 +81,7 @@ def parallel_park(
     per-step controls; ``|sigma| <= max_steer`` (default 1; ``sigma = tan`` of the steering angle).
     Model: ``integrator`` (default ``lj.RDP(order=4)``); ``system`` default ``lj.Car()``;
     ``checkpoint`` as for :func:`~ldap_jax.simulate` (default ``False``)."""
-    car = system if system is not None else Car()
+    car = model_of(system, Car, "parallel_park")
     l = float(car.l)
     return _car_to_rest(
         "parallel_park",
@@ -104,7 +115,7 @@ def u_turn(
     ``l / max_steer``: with the defaults a plain U-turn needs 1 m, so the car must back up),
     minimising the effort. Model: ``integrator`` (default ``lj.RDP(order=4)``) on ``system``
     (default ``lj.Car()``); ``checkpoint`` as for :func:`~ldap_jax.simulate` (default ``False``)."""
-    car = system if system is not None else Car()
+    car = model_of(system, Car, "u_turn")
     return _car_to_rest(
         "u_turn",
         car,
@@ -146,7 +157,7 @@ def forward_gait(
     ``max_steer`` 1 rad, ``n_terms`` 1, ``frequency`` 2 rad/s (the initial guess's),
     ``integrator`` ``lj.RDP(order=4)``, ``checkpoint`` ``False`` (the rollout's memory policy in
     reverse mode, as for :func:`~ldap_jax.simulate`)."""
-    sb = system if system is not None else Snakeboard()
+    sb = model_of(system, Snakeboard, "forward_gait")
     torques = per_channel("max_torque", sb.control_names, max_torque)
     return make_task(
         sb,
@@ -185,7 +196,7 @@ def reach(
     (default ``lj.RDP(order=4)``) on ``system`` (default ``lj.Snakeboard()``); ``frequency`` of the
     initial gait guess (default 2 rad/s); ``checkpoint`` as for :func:`~ldap_jax.simulate`
     (default ``False``)."""
-    sb = system if system is not None else Snakeboard()
+    sb = model_of(system, Snakeboard, "reach")
     torques = per_channel("max_torque", sb.control_names, max_torque)
     scale = np.asarray(list(torques.values()), float)
     return make_task(

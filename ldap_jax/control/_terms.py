@@ -157,6 +157,13 @@ class Displacement(AbstractTerm):
             raise ValueError(f"Displacement: 'direction' must be (2,), got shape {jnp.shape(self.direction)}")
         check_known("Displacement", "direction", self.direction)
         check_known("Displacement", "weight", self.weight)
+        if not any(isinstance(x, jax.core.Tracer) for x in (self.direction,)):
+            norm = float(np.hypot(*np.asarray(self.direction, float)))
+            if abs(norm - 1.0) > 1e-9:
+                raise ValueError(
+                    f"Displacement: 'direction' must be a unit vector, got {np.asarray(self.direction)} "
+                    f"(norm {norm:.6g}); scale the reward with 'weight'"
+                )
 
     def terminal(self, system, obs, q0):
         d = displacement(obs.q, q0)
