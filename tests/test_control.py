@@ -540,13 +540,17 @@ def test_sensitivity_to_an_active_bound_at_tight_tolerances(small_park):
     task, p0 = small_park
     b = task.bounds
 
-    def solve(s, tol):
+    def solve(s, tol, start=p0):
         bounds = lc.Bounds(b.q_lower.at[4].set(-s), b.q_upper.at[4].set(s), b.u_lower, b.u_upper)
-        return lc.solve(task.with_options(bounds=bounds), p0, tol=tol)
+        return lc.solve(task.with_options(bounds=bounds), start, tol=tol)
 
     s0, eps = 0.3, 1e-5
     sol = solve(s0, 1e-12)
     assert bool(sol.converged)
+    # a previous Solution as the guess counts as its params: the same optimum at once
+    again = solve(s0, 1e-12, start=sol)
+    assert bool(again.converged) and int(again.iterations) < int(sol.iterations)
+    np.testing.assert_allclose(np.asarray(again.params), np.asarray(sol.params), atol=1e-9)
     q0, qdot0 = task.initial_state(sol.params)
     traj = lj.simulate(
         task.system,

@@ -1128,6 +1128,29 @@ TASK_RAISES = {
         ValueError,
         "'bounds'.*fixed start.*'psi'",
     ),
+    # messages naming the argument (an audit of the control package, seventeenth session)
+    "TerminalPose goal str": (lambda: lc.TerminalPose("abc"), TypeError, "'goal'"),
+    "TerminalPose w_heading": (
+        lambda: lc.TerminalPose([0.0, 0.1, 0.0], w_heading=-1.0),
+        ValueError,
+        "'w_heading'",
+    ),
+    "Bounds.of str": (lambda: lc.Bounds.of(CAR, q={"sigma": "big"}), ValueError, "bound of 'sigma'"),
+    "Bounds.of list": (lambda: lc.Bounds.of(CAR, q=[1.0] * 5), TypeError, "'q' must be a dict"),
+    "make_gait bounds dict": (
+        lambda: lc.make_gait(SB, period=1.0, n_steps=N, objective=lc.Rotation(), bounds={"phi": 1.0}),
+        TypeError,
+        "'bounds'",
+    ),
+    "parallel_park system": (lambda: lc.parallel_park(system=SB), TypeError, "'system' must be an lj.Car"),
+    "drive_gait system": (lambda: lc.drive_gait(system=CAR), TypeError, "'system' must be an lj.Snakeboard"),
+    "Displacement direction": (lambda: lc.Displacement(direction=(0.0, 0.0)), ValueError, "unit vector"),
+    "SinusoidGait frequency": (lambda: lc.forward_gait(frequency=NAN), ValueError, "'frequency'"),
+    "gait initial_state array": (
+        lambda: lc.drive_gait(n_steps=N).initial_state(np.zeros((N + 1, 2))),
+        TypeError,
+        "'params'.*GaitParams",
+    ),
     "controls t0": (
         lambda: _make_task(controls=lc.SampledControls(1.0, N, np.ones(2), t0=0.5)),
         ValueError,
@@ -1741,3 +1764,12 @@ def test_save_all_equals_every_node_selected_by_index(amp):
             assert np.all(np.isnan(g_w))
         else:
             assert np.all(np.isfinite(g_w))
+
+
+def test_make_gait_takes_one_term_or_constraint_as_well_as_tuples():
+    """A single objective term or constraint (not in a tuple) builds the same task as the tuple."""
+    one = lc.make_gait(SB, period=1.0, n_steps=N, objective=lc.Rotation(), constraints=lc.InitialRest((0, 2)))
+    many = lc.make_gait(
+        SB, period=1.0, n_steps=N, objective=(lc.Rotation(),), constraints=(lc.InitialRest((0, 2)),)
+    )
+    assert one.objective == many.objective and one.constraints == many.constraints
