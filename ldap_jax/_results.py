@@ -42,7 +42,10 @@ class RESULTS(eqx.Enumeration):
     diverged = (
         "diverged: the energy balance E - E0 - W grew past `divergence` times the energy scale "
         "(or the state left the finite range). The run is numerically unstable at this step: "
-        "reduce the step, or raise `divergence` if the growth is physical."
+        "reduce the step, or raise `divergence` if the growth is physical. For lj.GNI: a step's "
+        "velocity left the constraints (normalised violation above `max_violation`), the "
+        "faithful variant's parasitic mode, which a smaller step does not remove; use "
+        'GNI(variant="folded") or RDP.'
     )
     invalid_input = (
         "an input is invalid: t_final <= t0, a non-finite time or a step (t_final - t0) / n_steps "

@@ -171,7 +171,7 @@ def test_gni_parasitic_mode_is_the_method():
     batch = index(maneuvers(sb, 4, seed=3), slice(0, 1))
     t_final = 80.0
     ns = (1600, 6400)
-    faithful = simulate_ns(sb, lj.GNI(), batch, t_final, ns)
+    faithful = simulate_ns(sb, lj.GNI(max_violation=None), batch, t_final, ns)  # not stopped
     folded = simulate_ns(sb, lj.GNI(variant="folded"), batch, t_final, ns)
     late = {}
     for n in ns:
@@ -184,6 +184,47 @@ def test_gni_parasitic_mode_is_the_method():
     # 4x smaller steps do not shrink the late violation by anything like h^2 (16x)
     assert late[6400] > 0.25 * late[1600], late
     assert late[1600] > 0.1, late
+
+
+def test_gni_parasitic_mode_ends_the_run_as_diverged():
+    """A car with a 2 m wheel driven from 3 rad/s (its heading turns 45 rad in 4 s): the faithful
+    GNI's parasitic mode takes the velocity off the constraints within the run at every step
+    size, its heading 36-42 rad from the truth where the folded variant and RDP converge. With
+    the default ``max_violation`` the run ends ``diverged``; without it (``None``) it reports
+    success with that error, which is what the check is for."""
+    car = lj.Car(m=1.0, I=0.1, K=0.2, rho=2.0, l=0.5)
+    f0 = 0.1 + 1.0 * 2.0**2
+    ctl = lj.Sinusoids(
+        amplitude=jnp.array([[f0, 0.5 * f0], [0.5, 0.0]]),
+        frequency=jnp.array([[1.0, 2.3], [1.0, 1.0]]),
+        phase=jnp.array([[0.3, 1.0], [0.5, 0.0]]),
+    )
+    q0 = jnp.array([0.0, 0.0, 0.4, 0.0, 0.2])
+    qdot0 = car.qdot_from_velocities(q0, jnp.array([3.0]), jnp.zeros(2))
+
+    def final(integrator, n):
+        traj = lj.simulate(
+            car,
+            q0,
+            qdot0,
+            ctl,
+            t_final=4.0,
+            n_steps=n,
+            integrator=integrator,
+            save="final",
+            diagnostics=False,
+        )
+        return code(traj.result), np.asarray(traj.q[-1])
+
+    _, truth = final(lj.RDP(order=4), 2560)  # 1.5e-12 from the Lagrange-d'Alembert solution
+    for n in (160, 2560):
+        assert final(lj.GNI(), n)[0] == code(lj.RESULTS.diverged), n
+    result, q = final(lj.GNI(max_violation=None), 2560)
+    assert result == code(lj.RESULTS.successful) and abs(q[2] - truth[2]) > 10.0
+    result, q = final(lj.GNI(variant="folded"), 2560)
+    assert result == code(lj.RESULTS.successful) and np.max(np.abs(q[:3] - truth[:3])) < 1e-2
+    with pytest.raises(ValueError, match="'max_violation'"):
+        lj.GNI(max_violation=0.0)
 
 
 def test_gni_refuses_configuration_dependent_mass_matrix():

@@ -13,6 +13,7 @@ from jaxtyping import Array
 
 from .._linalg import solve
 from .._numerics import safe_vnorm
+from .._results import RESULTS
 from ..systems._base import body_velocity
 from ._base import AbstractAlphaIntegrator, StepInfo, classify, finite, refuse_friction
 from ._dla import constraint_rows, legendre_inverse, mass_matrix, step_inputs
@@ -85,10 +86,19 @@ class GNI(AbstractAlphaIntegrator):
     on ``a``), 1 otherwise; unforced, the kinetic energy is conserved exactly and, forced, an
     exact discrete work-energy balance holds (faithful variant).
 
+    **Failure.** A step whose velocity leaves the constraints, ``|D omega(q_k) v_k| / |v_k| >
+    max_violation`` with ``D`` scaling each constraint row to unit norm (default 0.5: the velocity
+    30 degrees off the constraint distribution), ends the run as ``RESULTS.diverged``: the
+    parasitic mode has taken over and the motion is no longer the system's. On a fast car (a
+    wheel of radius 2 m at 3 rad/s) this happens within 4 s at every step size, with the heading
+    36-42 rad off where the folded variant and RDP converge; healthy runs stay below 0.1.
+
     Args:
         alpha: force quadrature point in [0, 1] (default 1/2; also the constraint point of
             ``"folded"``).
         variant: ``"faithful"`` (default) or ``"folded"``.
+        max_violation: the largest normalised constraint violation of a step's velocity before
+            the run is reported ``diverged`` (default 0.5; ``None`` never, to watch the mode grow).
 
     Example:
         >>> traj = lj.simulate(sb, q0, qdot0, ctl, t_final=10.0, n_steps=1000, integrator=lj.GNI())
@@ -97,10 +107,14 @@ class GNI(AbstractAlphaIntegrator):
 
     alpha: float = 0.5
     variant: Literal["faithful", "folded"] = eqx.field(default="faithful", static=True)
+    max_violation: float | None = eqx.field(default=0.5, static=True)
 
     def __check_init__(self):
         if self.variant not in ("faithful", "folded"):
             raise ValueError(f"GNI: 'variant' must be 'faithful' or 'folded', got {self.variant!r}")
+        m = self.max_violation
+        if m is not None and (isinstance(m, bool) or not isinstance(m, (int, float)) or not 0 < m < np.inf):
+            raise ValueError(f"GNI: 'max_violation' must be a positive number or None, got {m!r}")
 
     def init(self, system, h, q0, qdot0, c):
         refuse_friction("GNI", system)
@@ -150,6 +164,12 @@ class GNI(AbstractAlphaIntegrator):
         violation = safe_vnorm(omega @ v) / jnp.where(speed > tiny, speed, 1.0)
         new = GNIState(q=q + h * v, v=v, p=mass @ v + h * a * force)
         result = classify(finite(new), system.singular(new.q, q), jnp.ones((), bool))
+        if self.max_violation is not None:
+            # each constraint row scaled to unit norm: the sine-like angle of v off the distribution
+            row_norm = jnp.sqrt(jnp.sum(omega**2, axis=1))
+            unit = (omega @ v) / jnp.where(row_norm > tiny, row_norm, 1.0)
+            off = safe_vnorm(unit) > self.max_violation * jnp.where(speed > tiny, speed, jnp.inf)
+            result = RESULTS.where((result == RESULTS.successful) & off, RESULTS.diverged, result)
         return new, StepInfo(result=result, residual=violation, iterations=jnp.zeros((), jnp.int32))
 
     def observe(self, system, state, c):
