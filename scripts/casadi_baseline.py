@@ -458,8 +458,16 @@ def _table(results: list[dict]) -> str:
     )
 
 
+def require_casadi(parser: argparse.ArgumentParser) -> None:
+    """Stop with a clear message (before any work) when CasADi is not installed."""
+    try:
+        import casadi  # noqa: F401
+    except ModuleNotFoundError:
+        parser.error("CasADi is not installed: pip install -e '.[bench]' (make demo installs it)")
+
+
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     parser.add_argument(
         "tasks", nargs="*", metavar="TASK", help=f"tasks to run (default: all of {', '.join(TASKS)})"
     )
@@ -475,6 +483,7 @@ def main(argv: list[str] | None = None) -> None:
 
     casadi_gaits.add_arguments(parser, positional=False)
     args = parser.parse_args(argv)
+    require_casadi(parser)
     if args.gaits:
         casadi_gaits.run_cli(parser, args, args.tasks)
         return

@@ -57,7 +57,7 @@ import time
 
 import numpy as np
 from _args import positive_int
-from casadi_baseline import _CONTROL_NAMES, _STATE_NAMES, CAR, SNAKEBOARD, rhs
+from casadi_baseline import _CONTROL_NAMES, _STATE_NAMES, CAR, SNAKEBOARD, require_casadi, rhs
 from casadi_baseline import replay as cb_replay
 
 __all__ = ["GAITS", "Gait", "gait", "build_gait", "guesses", "rollout", "replay_gait", "run_gait"]
@@ -457,9 +457,10 @@ def write_json(results: list[dict], path: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     add_arguments(parser)
     args = parser.parse_args(argv)
+    require_casadi(parser)
     run_cli(parser, args, args.gaits_list)
 
 

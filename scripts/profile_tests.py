@@ -121,3 +121,10 @@ def pytest_sessionfinish(session, exitstatus):
     worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
     out.mkdir(parents=True, exist_ok=True)
     (out / f"{worker}.json").write_text(json.dumps(_STATS, indent=1))
+
+
+if __name__ == "__main__":  # a pytest plugin, not a program: say how to use it
+    import sys
+
+    print(__doc__)
+    sys.exit(0 if set(sys.argv[1:]) <= {"-h", "--help"} else 2)
