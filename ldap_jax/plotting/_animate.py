@@ -17,7 +17,7 @@ from matplotlib.lines import Line2D
 from PIL import Image
 
 from ..systems import AbstractSystem
-from ._common import as_tq, is_reference, style_for, tracks, warn_if_failed
+from ._common import as_tq, check_scale, is_reference, starts_run, styles_for, tracks, warn_if_failed
 from ._paths import auto_scale
 from ._vehicles import Drawer, VehicleArtists, vehicle_parts, vehicle_size
 
@@ -112,12 +112,13 @@ def animate(
             label -> one of those, or a sequence of them (labels from ``labels``).
         system: the system (the vehicle's drawing: the car with steered front wheels, the
             snakeboard with both wheel sets and the rotor, a pose triangle otherwise).
-        path: the GIF file to write.
+        path: the GIF file to write (its name must end in ``.gif``).
         t: node times (M,) (s) for arrays without times; without any times the label shows
             the node index.
         fps: frames per second of the GIF.
-        every: draw every ``every``-th node (default: the smallest stride giving at most
-            ``max_frames`` frames); the frames are :func:`frame_indices` ``(M, every)``.
+        every: draw every ``every``-th node (a positive integer, NumPy's too; default: the
+            smallest stride giving at most ``max_frames`` frames); the frames are
+            :func:`frame_indices` ``(M, every)``.
         trail: draw each vehicle's past path, fading with age.
         trail_seconds: length of the trail (s); default the whole past.
         goal: a goal pose ``(x, y)`` (m) or ``(x, y, theta)`` (m, rad), drawn as a star (with an
@@ -129,7 +130,7 @@ def animate(
             :func:`~ldap_jax.plotting.plot_paths`): the vehicle's length is 12% of the paths'
             extent, at most true size. The legend says the scale when it is not true size.
         vehicle: custom drawing ``q -> parts`` (see :func:`~ldap_jax.plotting.vehicle_parts`).
-        max_frames: frame budget used when ``every`` is None.
+        max_frames: frame budget used when ``every`` is None (a positive integer).
         dpi: resolution (dots per inch); the GIF is ``figsize * dpi`` pixels.
         figsize: figure size (inches); default fitted to the paths' aspect (axes at most 4.6 x 5).
 
@@ -137,7 +138,10 @@ def animate(
         ``path`` as a string.
 
     Raises:
-        ValueError: empty input, bad ``every``/``fps``/``goal``/``scale``.
+        TypeError: ``system`` not a system (e.g. the arguments swapped), ``path`` not a file name.
+        ValueError: empty input, a batch of trajectories (pick one member), a ``path`` not ending
+            in ``.gif``, bad ``every``/``max_frames``/``fps``/``goal``/``scale``; all checked
+            before any frame is drawn.
 
     Example:
         >>> import ldap_jax.plotting as lp
@@ -145,12 +149,30 @@ def animate(
         >>> from IPython.display import Image
         >>> Image(filename=gif)  # shows the animation inline in a notebook
     """
+    if not isinstance(system, AbstractSystem):
+        raise TypeError(
+            f"'system' must be an ldap_jax system (e.g. lj.Car()), got {type(system).__name__}; "
+            "the arguments are animate(trajectory, system, path)"
+        )
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"'path' must be a file name ending in .gif, got {type(path).__name__}")
+    if os.path.splitext(os.fspath(path))[1].lower() != ".gif":
+        raise ValueError(f"'path' must end in .gif (animate writes GIF files only), got {os.fspath(path)!r}")
     if not fps > 0:
         raise ValueError(f"'fps' must be positive, got {fps}")
-    if every is not None and (isinstance(every, bool) or not isinstance(every, int) or every < 1):
-        raise ValueError(f"'every' must be a positive integer or None, got {every!r}")
+    if every is not None:
+        if isinstance(every, (bool, np.bool_)) or not isinstance(every, (int, np.integer)) or every < 1:
+            raise ValueError(f"'every' must be a positive integer or None, got {every!r}")
+        every = int(every)
+    if (
+        isinstance(max_frames, (bool, np.bool_))
+        or not isinstance(max_frames, (int, np.integer))
+        or max_frames < 1
+    ):
+        raise ValueError(f"'max_frames' must be a positive integer, got {max_frames!r}")
     if goal is not None and len(goal) not in (2, 3):
         raise ValueError(f"'goal' must be (x, y) or (x, y, theta), got {goal!r}")
+    scale = check_scale(scale)
     styles = styles or {}
     named = tracks(traj_or_q, labels)
     if not named:
@@ -158,9 +180,9 @@ def animate(
     data = {}
     for label, obj in named.items():
         warn_if_failed(label, obj)
-        tt, q = as_tq(obj)
+        tt, q = as_tq(obj, label=label, name="traj_or_q")
         if tt is None and t is not None:
-            tt, q = as_tq(q, t)
+            tt, q = as_tq(q, t, label=label, name="traj_or_q")
         if q.shape[0] < 1:
             raise ValueError(f"{label!r} has no nodes")
         data[label] = (tt, q)
@@ -175,12 +197,8 @@ def animate(
         raise ValueError("no finite positions to animate")
     if goal is not None:
         xy = np.concatenate([xy, np.asarray(goal, float)[None, :2]])
-    if isinstance(scale, str):
-        if scale != "auto":
-            raise ValueError(f"'scale' must be a positive number or 'auto', got {scale!r}")
+    if scale == "auto":
         scale = auto_scale(system, xy) if vehicle is None else 1.0
-    elif not scale > 0:
-        raise ValueError(f"'scale' must be a positive number or 'auto', got {scale!r}")
     scale = float(scale)
     if vehicle is not None:
         pts = np.concatenate([p.xy for p in vehicle_parts(system, q_main[0], vehicle=vehicle)])
@@ -207,8 +225,14 @@ def animate(
         ax.set_title(title, fontsize=10)
 
     handles = []
-    ax.plot(q_main[0, 0], q_main[0, 1], "o", ms=8, mfc="white", mec="k", mew=1.5, zorder=7)
-    handles.append(Line2D([], [], ls="none", marker="o", ms=7, mfc="white", mec="k", mew=1.5, label="start"))
+    # the start: the first trajectory's first node when it is the run's start (not save="final")
+    t_first = [tt[0] for tt, q in data.values() if tt is not None]
+    main = next(iter(named.values()))
+    if starts_run(main, t_main, min(t_first) if t_first else None) and np.all(np.isfinite(q_main[0, :2])):
+        ax.plot(q_main[0, 0], q_main[0, 1], "o", ms=8, mfc="white", mec="k", mew=1.5, zorder=7)
+        handles.append(
+            Line2D([], [], ls="none", marker="o", ms=7, mfc="white", mec="k", mew=1.5, label="start")
+        )
     if goal is not None:
         g = np.asarray(goal, float)
         ax.plot(g[0], g[1], "*", ms=14, color="tab:red", zorder=7)
@@ -223,9 +247,10 @@ def animate(
         handles.append(Line2D([], [], ls="none", marker="*", ms=11, color="tab:red", label="goal"))
 
     artists = []
-    for i, (label, (tt, q)) in enumerate(data.items()):
+    track_styles = styles_for(data)
+    for label, (tt, q) in data.items():
         ref = is_reference(label)
-        default = "0.45" if ref else (style_for(label, i)["color"] if label else "tab:blue")
+        default = "0.45" if ref else (track_styles[label]["color"] if label else "tab:blue")
         color = styles.get(label, {}).get("color", default)
         lc = None
         if trail:

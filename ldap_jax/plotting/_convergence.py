@@ -11,21 +11,61 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from matplotlib.ticker import NullFormatter
 
-from ._common import root_figure, style_for
+from ._common import labelled, root_figure, styles_for
 
 __all__ = ["plot_convergence", "plot_work_precision", "study_curves", "fitted_order"]
 
 
-def _xy(value: Any, label: str, *, pairs_first: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(x, y, order)``, sorted by x, from two sequences ``(xs, ys)`` or a sequence of ``(x, y)``
-    pairs (``pairs_first`` decides the ambiguous 2 x 2 case); ``order`` sorts the input."""
-    arr = np.asarray(value, dtype=float)
-    if arr.ndim != 2 or 2 not in arr.shape:
-        raise ValueError(f"{label!r}: expected (xs, ys) or a sequence of (x, y) pairs, got shape {arr.shape}")
-    as_pairs = arr.shape[1] == 2 and (pairs_first or arr.shape[0] != 2)
-    x, y = (arr[:, 0], arr[:, 1]) if as_pairs else (arr[0], arr[1])
-    order = np.argsort(x)
+def _xy(value: Any, label: str, x_name: str = "steps") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(x, y, order)``, sorted by x, from two sequences ``(xs, ys)`` (a tuple of two sequences) or
+    a sequence of ``(x, y)`` pairs (a list of two pairs is pairs); ``order`` sorts the input.
+
+    Raises:
+        TypeError: ``label`` not a string.
+        ValueError: neither form, or the ambiguous 2 x 2 forms: a tuple of two 2-tuples, a 2 x 2
+            array.
+    """
+    if not isinstance(label, str):
+        raise TypeError(f"labels must be strings, got {label!r} ({type(label).__name__})")
+    forms = (
+        f"pass the {x_name} and errors as a tuple of two lists ([x1, x2, ...], [e1, e2, ...]) or a "
+        "list of (x, error) pairs [(x1, e1), (x2, e2), ...]"
+    )
+    if isinstance(value, tuple) and len(value) == 2 and all(_is_sequence(v) for v in value):
+        if all(isinstance(v, tuple) and len(v) == 2 for v in value):
+            raise ValueError(
+                f"{label!r}: a tuple of two 2-tuples is ambiguous (two pairs or (xs, ys)?): {forms}"
+            )
+        x, y = (np.asarray(v, dtype=float) for v in value)
+        if x.ndim != 1 or x.shape != y.shape:
+            raise ValueError(
+                f"{label!r}: (xs, ys) must be two 1-d sequences of one length, got {x.shape}, {y.shape}"
+            )
+    else:
+        try:
+            arr = np.asarray(value, dtype=float)
+        except (TypeError, ValueError) as err:
+            raise ValueError(f"{label!r}: expected (xs, ys) or a sequence of (x, y) pairs: {forms}") from err
+        if arr.ndim != 2 or 2 not in arr.shape:
+            raise ValueError(
+                f"{label!r}: expected (xs, ys) or a sequence of (x, y) pairs, got shape {arr.shape}"
+            )
+        if arr.shape == (2, 2) and not isinstance(value, (list, tuple)):
+            raise ValueError(f"{label!r}: a 2 x 2 array is ambiguous (two pairs or (xs, ys)?): {forms}")
+        as_pairs = arr.shape[1] == 2 and (isinstance(value, (list, tuple)) or arr.shape[0] != 2)
+        x, y = (arr[:, 0], arr[:, 1]) if as_pairs else (arr[0], arr[1])
+    order = np.argsort(x, kind="stable")
     return x[order], y[order], order
+
+
+def _is_sequence(v: Any) -> bool:
+    """A 1-d sequence of values (a list, tuple or array), not a scalar nor a string."""
+    if isinstance(v, (str, bytes)):
+        return False
+    try:
+        return np.ndim(v) == 1
+    except ValueError:  # ragged
+        return False
 
 
 def fitted_order(h: Sequence[float], err: Sequence[float], *, floor: float = 0.0) -> float:
@@ -62,8 +102,9 @@ def plot_convergence(
     order is ``p`` (through the geometric mean of all errors when no curve has that order).
 
     Args:
-        results: label -> ``(steps, errors)`` (two sequences) or a sequence of ``(h, error)``
-            pairs; NaN errors (failed runs) are skipped.
+        results: label -> ``(steps, errors)`` (a tuple of two sequences) or a list of
+            ``(h, error)`` pairs (a list of two pairs is two points); NaN errors (failed runs) are
+            skipped. A tuple of two 2-tuples or a 2 x 2 array is ambiguous and refused.
         ax: axes to draw into (default: a new figure).
         slopes: orders of the reference lines.
         floor: errors at or below it are excluded from the fitted orders (units of the errors).
@@ -75,15 +116,21 @@ def plot_convergence(
 
     Returns:
         The figure.
+
+    Raises:
+        TypeError: ``results`` not a mapping, or a label not a string.
+        ValueError: a curve in neither form, or in an ambiguous one.
     """
+    results = labelled(results, "results", "{'RDP': (steps, errors)}")
     styles = styles or {}
+    data = {label: _xy(v, label)[:2] for label, v in results.items()}
     if ax is None:
         _, ax = plt.subplots(figsize=(6.4, 4.6), layout="constrained")
-    data = {label: _xy(v, label, pairs_first=False)[:2] for label, v in results.items()}
-    for i, (label, (h, err)) in enumerate(data.items()):
+    curve_styles = styles_for(data, markers=True)
+    for label, (h, err) in data.items():
         p = fitted_order(h, err, floor=floor)
         name = f"{label} (fitted order {p:.1f})" if np.isfinite(p) else label
-        kw = {"lw": 1.5, "ms": 5, **style_for(label, i, markers=True), **styles.get(label, {})}
+        kw = {"lw": 1.5, "ms": 5, **curve_styles[label], **styles.get(label, {})}
         ok = np.isfinite(err) & (err > 0)
         ax.loglog(h[ok], err[ok], label=name, **kw)
     all_h = np.concatenate([h for h, _ in data.values()]) if data else np.array([])
@@ -187,10 +234,11 @@ def plot_work_precision(
     is better: less error for less time).
 
     Args:
-        curves: label -> sequence of ``(seconds, error)`` pairs (or ``(seconds_list, errors)``);
-            or the rows of a study (:func:`ldap_jax.study.run_study`), plotted as they are: one
-            curve per method, runtimes in seconds, each point annotated with its ``N``
-            (:func:`study_curves`). Non-finite points are skipped.
+        curves: label -> a list of ``(seconds, error)`` pairs (a list of two pairs is two points)
+            or a tuple of two sequences ``(seconds_list, errors)``; or the rows of a study
+            (:func:`ldap_jax.study.run_study`), plotted as they are: one curve per method,
+            runtimes in seconds, each point annotated with its ``N`` (:func:`study_curves`).
+            Non-finite points are skipped.
         ax: axes to draw into (default: a new figure).
         annotations: label -> one text per point (in the given order, e.g. ``"N=100"``).
         error: with study rows, the error column to plot (default the median final error).
@@ -204,8 +252,10 @@ def plot_work_precision(
         The figure.
 
     Raises:
-        ValueError: a curve that is neither pairs nor two sequences; a study row without the
-            columns it needs.
+        TypeError: a label not a string.
+        ValueError: a curve that is neither pairs nor two sequences (or an ambiguous tuple of two
+            2-tuples or 2 x 2 array); annotations whose count is not the curve's; a study row
+            without the columns it needs.
 
     Example:
         >>> from ldap_jax import study
@@ -217,14 +267,22 @@ def plot_work_precision(
         curves, notes = study_curves(curves, error)
         annotations = notes if annotations is None else annotations
         ylabel = ylabel or f"{error.replace('_', ' ')} [m]"
+    curves = labelled(curves, "curves", "{'RDP': [(seconds, error), ...]}")
     styles = styles or {}
     annotations = annotations or {}
+    data = {label: _xy(value, label, "runtimes") for label, value in curves.items()}
+    for label, texts in annotations.items():
+        if label in data and len(texts) != len(data[label][0]):
+            raise ValueError(
+                f"'annotations' {label!r}: {len(texts)} texts for {len(data[label][0])} points "
+                "(one text per point)"
+            )
     if ax is None:
         _, ax = plt.subplots(figsize=(6.4, 4.6), layout="constrained")
-    for i, (label, value) in enumerate(curves.items()):
-        secs, errs, order = _xy(value, label, pairs_first=True)
+    curve_styles = styles_for(data, markers=True)
+    for label, (secs, errs, order) in data.items():
         ok = np.isfinite(secs) & np.isfinite(errs) & (secs > 0) & (errs > 0)
-        kw = {"lw": 1.5, "ms": 5, **style_for(label, i, markers=True), **styles.get(label, {})}
+        kw = {"lw": 1.5, "ms": 5, **curve_styles[label], **styles.get(label, {})}
         ax.loglog(secs[ok], errs[ok], label=label, **kw)
         texts = annotations.get(label)
         if texts is not None:

@@ -14,11 +14,15 @@ from .._compilation_cache import compiler_options
 from ..systems import AbstractSystem
 from ._common import (
     REFERENCE_STYLE,
+    check_one,
     finite_positive,
+    labelled,
+    needs_nodes,
     reference_nodes,
     root_figure,
     running_max,
-    style_for,
+    starts_run,
+    styles_for,
     warn_if_failed,
 )
 
@@ -34,10 +38,37 @@ def _needs_diagnostics(label: str, traj: Any) -> None:
 
 def _groups(trajectories: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
     """``{system: {label: traj}}`` from a nested mapping or a flat one (a single group)."""
+    example = "{'RDP': traj} or {'car': {'RDP': traj}}"
+    trajectories = labelled(trajectories, "trajectories", example)
     values = list(trajectories.values())
     if values and all(isinstance(v, Mapping) for v in values):
-        return {str(k): dict(v) for k, v in trajectories.items()}
-    return {"": dict(trajectories)}
+        return {k: labelled(v, "trajectories", example) for k, v in trajectories.items()}
+    return {"": trajectories}
+
+
+def _check_reference(name: str, value: Any) -> tuple[AbstractSystem, Any]:
+    """A reference entry ``(system, Solution)``; a ``TypeError`` naming ``'references'`` otherwise."""
+    ok = (
+        isinstance(value, tuple)
+        and len(value) == 2
+        and isinstance(value[0], AbstractSystem)
+        and all(hasattr(value[1], f) for f in ("t", "q", "qdot"))
+    )
+    if not ok:
+        where = "'references'" if not name else f"'references' {name!r}"
+        raise TypeError(
+            f"{where} must be (system, Solution), e.g. (car, lj.reference(car, q0, qdot0, ctl, traj.t)), "
+            f"or {{system name: (system, Solution)}}, got {type(value).__name__}"
+            + (f" of {[type(v).__name__ for v in value]}" if isinstance(value, tuple) else "")
+        )
+    return value
+
+
+def _checked(label: str, traj: Any, name: str) -> None:
+    """One trajectory with diagnostics and at least two saved nodes."""
+    check_one(label, traj, name)
+    _needs_diagnostics(label, traj)
+    needs_nodes(label, np.shape(traj.t)[0], name, "a curve over time")
 
 
 def _reference_values(system: Any, reference: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -92,23 +123,36 @@ def plot_diagnostics(
         The figure.
 
     Raises:
-        ValueError: a trajectory without diagnostics, or a reference not sampled at its nodes.
+        TypeError: ``trajectories`` not a mapping with string labels (e.g. a bare trajectory),
+            ``references`` neither ``(system, Solution)`` nor a mapping of them.
+        ValueError: a trajectory without diagnostics, with fewer than two saved nodes or batched
+            (pick one member), a reference not sampled at its nodes, or ``references`` naming a
+            row that ``trajectories`` does not have.
     """
+    groups = _groups(trajectories)
     if not trajectories:
         raise ValueError("'trajectories' is empty")
-    groups = _groups(trajectories)
+    for trajs in groups.values():
+        for label, traj in trajs.items():
+            _checked(label, traj, "trajectories")
     for trajs in groups.values():
         for label, traj in trajs.items():
             warn_if_failed(label, traj)
-    if isinstance(references, tuple):
-        references = {next(iter(groups)): references}
-    references = dict(references or {})
+    if isinstance(references, tuple) or (references is not None and not isinstance(references, Mapping)):
+        references = {next(iter(groups)): _check_reference("", references)}
+    references = {name: _check_reference(name, ref) for name, ref in (references or {}).items()}
+    unknown = [name for name in references if name not in groups]
+    if unknown:
+        rows = [name for name in groups if name] or "one unnamed row (a flat mapping)"
+        raise ValueError(
+            f"'references' has {unknown}, not rows of 'trajectories' ({rows}); for a flat mapping "
+            "label -> trajectory pass references=(system, Solution)"
+        )
     n_rows = len(groups)
     fig = plt.figure(figsize=figsize or (13.0, 3.4 * n_rows), layout="constrained")
     subfigs = np.atleast_1d(fig.subfigures(n_rows, 1))
     for sub, (system_name, trajs) in zip(subfigs, groups.items()):
-        for label, traj in trajs.items():
-            _needs_diagnostics(label, traj)
+        curve_styles = styles_for(trajs)
         has_mu = any(
             getattr(tr, "momentum", None) is not None and np.asarray(tr.momentum).shape[-1] > 0
             for tr in trajs.values()
@@ -123,14 +167,15 @@ def plot_diagnostics(
         ax = axes[0]
         if ref is not None:
             t_ref, e_all, mu_all = _reference_values(*ref)
-            for i, (label, traj) in enumerate(trajs.items()):
-                t = np.asarray(traj.t)
-                idx = reference_nodes(t_ref, t, label)
+            for label, traj in trajs.items():
+                t = np.asarray(traj.t, float)
+                idx = reference_nodes(t_ref, t, label, traj.t, ref[1].t)
                 e_ref = e_all[idx]
                 ref_mu[label] = (t, mu_all[idx])
-                kw = {"lw": 1.4, **style_for(label, i)}
+                kw = {"lw": 1.4, **curve_styles[label]}
                 err = finite_positive(np.abs(np.asarray(traj.energy) - e_ref))
-                ax.semilogy(t[1:], err[1:], label=label, **kw)  # node 0 is exact
+                first = 1 if starts_run(traj, t) else 0  # node 0 is exact
+                ax.semilogy(t[first:], err[first:], label=label, **kw)
             ax.set_title(f"{prefix}energy error against the reference\n({e_range})", fontsize=10)
             ax.set_ylabel("$|E - E_{ref}|$ [J]")
         else:
@@ -157,11 +202,11 @@ def plot_diagnostics(
             if ref_mu:
                 t, mu_ref = next(iter(ref_mu.values()))
                 ax.plot(t, mu_ref[:, 0], label="reference", **{**REFERENCE_STYLE, "lw": 4.0})
-            for i, (label, traj) in enumerate(trajs.items()):
+            for label, traj in trajs.items():
                 mu = getattr(traj, "momentum", None)
                 if mu is None or np.asarray(mu).shape[-1] == 0:
                     continue
-                kw = {"lw": 1.3, **style_for(label, i)}
+                kw = {"lw": 1.3, **curve_styles[label]}
                 ax.plot(np.asarray(traj.t), np.asarray(mu)[:, 0], label=label, **kw)
             ax.set_title(
                 rf"{prefix}nonholonomic momentum $\mu_1$" + "\n(constrained-symmetry direction $e_1$)",
@@ -193,9 +238,11 @@ def plot_energy_error(
     Args:
         trajs: label -> :class:`~ldap_jax.Trajectory` (``diagnostics=True``).
         ax: axes to draw into (default: a new figure).
-        relative: divide by ``|E_0|`` (dimensionless) instead of joules.
+        relative: divide by ``|E_0|`` (dimensionless) instead of joules (undefined, and refused,
+            for ``E_0 = 0``, e.g. a run from rest).
         envelope: draw the running maximum ``max_{j <= k} |E_j - E_0 - W_j|`` (thick) over the
-            oscillating value (thin, light); False draws the value only.
+            oscillating value (thin, light), up to a failed run's failure; False draws the value
+            only.
         logx: logarithmic time axis: a drift growing like ``t^p`` is then a line of slope ``p``.
             (Node 0, where the error is zero by construction, is never drawn.)
         title: axes title.
@@ -205,20 +252,33 @@ def plot_energy_error(
         The figure.
 
     Raises:
-        ValueError: a trajectory without diagnostics.
+        TypeError: ``trajs`` not a mapping with string labels (e.g. a bare trajectory).
+        ValueError: a trajectory without diagnostics, with fewer than two saved nodes or batched
+            (pick one member); ``relative=True`` with ``E_0 = 0``.
     """
+    trajs = labelled(trajs, "trajs")
     styles = styles or {}
+    for label, traj in trajs.items():
+        _checked(label, traj, "trajs")
+    e0 = {label: float(np.asarray(traj.energy, float)[0]) for label, traj in trajs.items()}
+    if relative:
+        for label, e in e0.items():
+            if not (np.isfinite(e) and e != 0.0):
+                raise ValueError(
+                    f"'trajs' {label!r}: the relative error |E - E0 - W| / |E0| is undefined at E0 = {e:g} "
+                    "(e.g. a run from rest); use relative=False (joules)"
+                )
     if ax is None:
         fig, ax = plt.subplots(figsize=(6.4, 4.0), layout="constrained")
-    for i, (label, traj) in enumerate(trajs.items()):
-        _needs_diagnostics(label, traj)
+    curve_styles = styles_for(trajs)
+    for label, traj in trajs.items():
         warn_if_failed(label, traj)
-        t = np.asarray(traj.t)
-        err = np.abs(np.asarray(traj.energy_balance))
+        t = np.asarray(traj.t, float)
+        err = np.abs(np.asarray(traj.energy_balance, float))
         if relative:
-            err = err / np.abs(np.asarray(traj.energy)[0])
+            err = err / abs(e0[label])
         keep = t > t[0]  # node 0: zero by construction
-        kw = {"lw": 1.6, **style_for(label, i), **styles.get(label, {})}
+        kw = {"lw": 1.6, **curve_styles[label], **styles.get(label, {})}
         if envelope:
             ax.plot(t[keep], finite_positive(err)[keep], color=kw["color"], lw=0.6, alpha=0.3)
             ax.plot(t[keep], finite_positive(running_max(err))[keep], label=label, **kw)

@@ -11,7 +11,20 @@ from matplotlib.axes import Axes
 from matplotlib.lines import Line2D
 
 from ..systems import AbstractSystem
-from ._common import as_tq, finite_positive, is_reference, reference_nodes, style_for, warn_if_failed
+from ._common import (
+    as_tq,
+    check_scale,
+    failure_name,
+    finite_positive,
+    is_failed,
+    is_reference,
+    labelled,
+    needs_nodes,
+    reference_nodes,
+    starts_run,
+    styles_for,
+    warn_if_failed,
+)
 from ._vehicles import Drawer, VehicleArtists, vehicle_parts, vehicle_size
 
 __all__ = ["plot_paths", "plot_position_error", "auto_scale"]
@@ -60,10 +73,13 @@ def plot_paths(
         draw: the path that carries the drawn vehicle (default: the first).
         n_draw: number of vehicle poses (0: none).
         styles: label -> keyword arguments for ``Axes.plot`` (override the defaults).
-        scale: drawing scale of the vehicle (1: true size), or ``"auto"``: the vehicle's length is
-            12% of the paths' extent (at most true size).
+        scale: drawing scale of the vehicle (a positive number, 1: true size), or ``"auto"``: the
+            vehicle's length is 12% of the paths' extent (at most true size).
         times: times (s) of the ``draw`` path's nodes (default: from the trajectory, if any).
-        markers: mark the start (circle) and every path's end (square).
+        markers: mark the start (circle: the first node of the ``draw`` path, or else of another
+            path, when it is the run's start; not for ``save="final"`` or a later first node) and
+            every path's end (square), or its failure (a cross at the last finite node of a failed
+            trajectory, "failed (<result>)" in the legend).
         vehicle: custom drawing ``q -> parts`` (see :func:`~ldap_jax.plotting.vehicle_parts`).
         legend: ``True``: a legend of the paths and the markers; ``"markers"``: of the vehicle,
             start and end markers only (for a figure-level legend of the paths); ``False``: none.
@@ -71,32 +87,54 @@ def plot_paths(
 
     Returns:
         ``ax``.
+
+    Raises:
+        TypeError: ``paths`` not a mapping with string labels.
+        ValueError: empty ``paths``, a batch of trajectories (pick one member), a bad ``draw`` or
+            ``scale``.
     """
-    if not isinstance(paths, Mapping):
-        raise TypeError(
-            f"'paths' must be a mapping label -> trajectory, e.g. {{'RDP': traj}}, got {type(paths)}"
-        )
+    paths = labelled(paths, "paths")
     if not paths:
         raise ValueError("'paths' is empty")
+    scale = check_scale(scale)
     styles = styles or {}
     for label, value in paths.items():
         warn_if_failed(label, value)
-    data = {label: as_tq(value) for label, value in paths.items()}
+    data = {label: as_tq(value, label=label, name="paths") for label, value in paths.items()}
     draw = draw if draw is not None else next(iter(paths))
     if draw not in data:
         raise ValueError(f"'draw' must be one of {list(paths)}, got {draw!r}")
-    for i, (label, (_, q)) in enumerate(data.items()):
-        kw = {"lw": 1.4, **style_for(label, i), **styles.get(label, {})}
+    curve_styles = styles_for(data)
+    failures: dict[str, str] = {}  # result name -> colour of the first path that failed so
+    n_failed = 0
+    for label, (_, q) in data.items():
+        kw = {"lw": 1.4, **curve_styles[label], **styles.get(label, {})}
         (line,) = ax.plot(q[:, 0], q[:, 1], label=label, **kw)
         if markers:
             good = np.flatnonzero(np.all(np.isfinite(q[:, :2]), axis=1))
             if good.size:
                 end = q[good[-1]]
-                ax.plot(end[0], end[1], "s", ms=5, mfc="none", mec=line.get_color(), mew=1.3, zorder=6)
+                if is_failed(paths[label]):  # the failure at the last finite node, not an end
+                    failures.setdefault(failure_name(paths[label]), line.get_color())
+                    n_failed += 1
+                    ax.plot(end[0], end[1], "x", ms=8, color=line.get_color(), mew=2.0, zorder=6)
+                else:
+                    ax.plot(end[0], end[1], "s", ms=5, mfc="none", mec=line.get_color(), mew=1.3, zorder=6)
     t_draw, q_draw = data[draw]
     t_draw = np.asarray(times, float) if times is not None else t_draw
+    start = None
     if markers:
-        ax.plot(q_draw[0, 0], q_draw[0, 1], "o", ms=8, mfc="white", mec="k", mew=1.5, zorder=7)
+        # the start of the run: the first saved node of the 'draw' path (else of another path)
+        # when it is the run's node 0; not for save="final" or a later first node
+        t_first = [t[0] for t, q in data.values() if t is not None and q.shape[0]]
+        t_start = min(t_first) if t_first else None
+        for label in [draw] + [lab for lab in data if lab != draw]:
+            t_lab, q_lab = data[label]
+            if starts_run(paths[label], t_lab, t_start) and np.all(np.isfinite(q_lab[0, :2])):
+                start = q_lab[0]
+                break
+        if start is not None:
+            ax.plot(start[0], start[1], "o", ms=8, mfc="white", mec="k", mew=1.5, zorder=7)
     all_xy = np.concatenate([q[:, :2] for _, q in data.values()])
     if scale == "auto":
         scale = auto_scale(system, all_xy)
@@ -131,12 +169,18 @@ def plot_paths(
             )
         )
     if markers:
-        handles.append(
-            Line2D([], [], ls="none", marker="o", ms=7, mfc="white", mec="k", mew=1.5, label="start")
-        )
-        handles.append(
-            Line2D([], [], ls="none", marker="s", ms=5, mfc="none", mec="0.3", mew=1.3, label="end")
-        )
+        if start is not None:
+            handles.append(
+                Line2D([], [], ls="none", marker="o", ms=7, mfc="white", mec="k", mew=1.5, label="start")
+            )
+        if n_failed < len(data):
+            handles.append(
+                Line2D([], [], ls="none", marker="s", ms=5, mfc="none", mec="0.3", mew=1.3, label="end")
+            )
+        for name, color in failures.items():
+            handles.append(
+                Line2D([], [], ls="none", marker="x", ms=7, color=color, mew=2.0, label=f"failed ({name})")
+            )
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
@@ -169,22 +213,28 @@ def plot_position_error(
         ``ax``.
 
     Raises:
-        ValueError: a trajectory's node times are not among the reference's.
+        TypeError: ``trajectories`` not a mapping with string labels (e.g. a bare trajectory).
+        ValueError: a trajectory's node times are not among the reference's (matched to a few ulp
+            of the times' dtype), a trajectory with fewer than two saved nodes, a batch.
     """
+    trajectories = labelled(trajectories, "trajectories")
     styles = styles or {}
-    t_ref, q_ref = as_tq(reference)
+    t_ref, q_ref = as_tq(reference, name="reference")
     if t_ref is None:
         raise ValueError("'reference' needs times (a Solution or Trajectory)")
-    for i, (label, traj) in enumerate(trajectories.items()):
-        t, q = as_tq(traj)
+    curve_styles = styles_for(trajectories)
+    for label, traj in trajectories.items():
+        t, q = as_tq(traj, label=label, name="trajectories")
         if t is None:
             raise ValueError(f"{label!r} needs times (a Trajectory)")
-        idx = reference_nodes(t_ref, t, label)
+        needs_nodes(label, q.shape[0], "trajectories", "the position error over time")
+        idx = reference_nodes(t_ref, t, label, traj.t, reference.t)
         err = np.linalg.norm(q[:, :2] - q_ref[idx, :2], axis=1)
-        kw = {"lw": 1.4, **style_for(label, i), **styles.get(label, {})}
+        kw = {"lw": 1.4, **curve_styles[label], **styles.get(label, {})}
         if is_reference(label):
             continue
-        ax.semilogy(t[1:], finite_positive(err)[1:], label=label, **kw)  # node 0: no error
+        first = 1 if starts_run(traj, t) else 0  # node 0: no error
+        ax.semilogy(t[first:], finite_positive(err)[first:], label=label, **kw)
     ax.set_xlabel("t [s]")
     ax.set_ylabel("position error [m]")
     ax.grid(True, which="major", alpha=0.3)

@@ -12,7 +12,7 @@ from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 
 from ..systems import AbstractSystem
-from ._common import shape_label, warn_if_failed
+from ._common import check_one, failure_name, is_failed, needs_nodes, shape_label, starts_run, warn_if_failed
 from ._paths import auto_scale
 from ._vehicles import Drawer, VehicleArtists, vehicle_parts
 
@@ -47,6 +47,10 @@ def plot_shape_loop(
     """A gait in three panels, coloured by time: the loop in shape space, the nonholonomic
     momentum, and the path of the body.
 
+    The first node is marked "start" when it is the run's start (node 0; else "first saved node");
+    a failed trajectory's last finite node is marked with a cross, "failed (<result>)", instead of
+    "end".
+
     A periodic shape motion (a closed loop in shape space) that encloses area generally moves the
     body: for the snakeboard, the rotor angle ``psi`` against the steering angle ``phi``; its
     net displacement per cycle is the loop's geometric phase (plus the momentum's drift).
@@ -68,17 +72,34 @@ def plot_shape_loop(
         The figure.
 
     Raises:
-        ValueError: a system without shape coordinates, or a bad ``shape``.
+        TypeError: ``traj`` not a trajectory (e.g. a :class:`~ldap_jax.control.Solution`: roll it
+            out with ``task.rollout(sol.params)``).
+        ValueError: a system without shape coordinates, a bad ``shape``, a trajectory with fewer
+            than two saved nodes (``save="final"``) or batched (pick one member).
     """
     if shape not in ("config", "phase"):
         raise ValueError(f"'shape' must be 'config' or 'phase', got {shape!r}")
     n = system.n_shape
     if n < 1:
         raise ValueError("plot_shape_loop needs a system with shape coordinates (n_shape >= 1)")
+    if not all(hasattr(traj, f) for f in ("t", "q", "qdot")):
+        hint = (
+            "; for a control solution roll out its parameters: task.rollout(sol.params)"
+            if hasattr(traj, "params")
+            else ""
+        )
+        raise TypeError(
+            f"'traj' must be a Trajectory (lj.simulate) with t, q and qdot, got {type(traj).__name__}{hint}"
+        )
+    check_one(None, traj, "traj")
+    needs_nodes(None, np.shape(traj.t)[0], "traj", "a loop over time")
     warn_if_failed("traj", traj)
     t = np.asarray(traj.t, float)
     q = np.asarray(traj.q, float)
     qdot = np.asarray(traj.qdot, float)
+    # the first node is the start only when it is the run's node 0 (not for a later first node)
+    first = "start" if starts_run(traj, t) else f"first saved node (t = {t[0]:.3g} s)"
+    failed = failure_name(traj) if is_failed(traj) else None
     names = tuple(system.shape_names)
     norm = Normalize(float(t[0]), float(t[-1]))
     fig, axes = plt.subplots(1, 3, figsize=figsize, layout="constrained")
@@ -95,7 +116,7 @@ def plot_shape_loop(
         ax.set_ylabel(shape_label(names[-1], rate=True))
         ax.set_title(f"gait loop in the phase plane of ${names[-1]}$", fontsize=10)
     lc = _coloured_line(ax, x, y, t, norm, cmap)
-    ax.plot(x[0], y[0], "o", ms=7, mfc="white", mec="k", zorder=5, label="start")
+    ax.plot(x[0], y[0], "o", ms=7, mfc="white", mec="k", zorder=5, label=first)
     ax.legend(fontsize=7, loc="best")
     ax.grid(True, alpha=0.3)
 
@@ -126,13 +147,21 @@ def plot_shape_loop(
             VehicleArtists(
                 ax, vehicle_parts(system, q[k], scale=scale, vehicle=vehicle), color="k", alpha=alpha, lw=0.9
             )
-        ax.plot(q[good[0], 0], q[good[0], 1], "o", ms=7, mfc="white", mec="k", zorder=6, label="start")
-        ax.plot(q[good[-1], 0], q[good[-1], 1], "s", ms=6, mfc="none", mec="k", zorder=6, label="end")
+        ax.plot(q[good[0], 0], q[good[0], 1], "o", ms=7, mfc="white", mec="k", zorder=6, label=first)
+        if failed is None:
+            ax.plot(q[good[-1], 0], q[good[-1], 1], "s", ms=6, mfc="none", mec="k", zorder=6, label="end")
+        else:  # the failure at the last finite node, not an end
+            end = q[good[-1]]
+            ax.plot(end[0], end[1], "x", ms=8, color="tab:red", mew=2.0, zorder=6, label=f"failed ({failed})")
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     size = "true size" if vehicle is not None or np.isclose(scale, 1.0) else f"{scale:.2g}x size"
-    ax.set_title(f"path (vehicle at start and end, {size})", fontsize=10)
+    ends = (
+        "start" if first == "start" else "first saved node",
+        "end" if failed is None else "last node before the failure",
+    )
+    ax.set_title(f"path (vehicle at {ends[0]} and {ends[1]}, {size})", fontsize=10)
     ax.legend(fontsize=7, loc="best")
     ax.grid(True, alpha=0.3)
     fig.colorbar(lc, ax=axes, label="t [s]", shrink=0.9, pad=0.01)
