@@ -24,7 +24,7 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Float
 
 from . import _tracing
-from ._compilation_cache import compiled_unless_staged
+from ._compilation_cache import asarray, compiled_unless_staged
 from ._controls import Constant
 from ._linalg import solve
 from ._results import RESULTS
@@ -49,7 +49,10 @@ class DiscreteDynamics(eqx.Module):
     equinox module holding arrays (a bound method must be hashable for ``jax.jit``).
 
     Arguments are checked when a method is traced: a state, configuration or control of the wrong
-    shape raises a ``ValueError`` naming it and the expected length.
+    shape raises a ``ValueError`` naming it and the expected length. The dynamics compute in the
+    dtype of ``h`` (a Python float: the default float, float64 with ``jax_enable_x64``); states,
+    configurations and controls of another float dtype are converted to it (for float32 dynamics
+    pass ``h=jnp.float32(...)``).
 
     Attributes:
         system, integrator: the model and the scheme.
@@ -83,7 +86,11 @@ class DiscreteDynamics(eqx.Module):
         this runs once, when the method is traced)."""
         n = {"x": self.n_state, "q": self.system.n_config, "u": self.n_controls}[kind]
         what = {"x": "n_state", "q": "n_config", "u": "n_controls"}[kind]
-        return check_array(name, x, (n,), f"({what} of this {type(self.system).__name__} discretization)")
+        x = check_array(name, x, (n,), f"({what} of this {type(self.system).__name__} discretization)")
+        dtype = self.h.dtype  # the dynamics' dtype (h's): inputs of another are converted to it
+        if x.dtype != dtype:
+            x = asarray(np.asarray(x), dtype) if is_concrete(x) else x.astype(dtype)
+        return x
 
     def _minimal(self) -> bool:
         return isinstance(self.integrator, RDP)
@@ -140,6 +147,9 @@ class DiscreteDynamics(eqx.Module):
                 entry or a ``qdot0`` off the constraints (as :func:`ldap_jax.simulate`).
         """
         if is_concrete((q0, qdot0, u0)):
+            # inputs rounded to a coarser dtype than the dynamics' are off the constraints by that
+            # rounding: the tolerance is the coarser dtype's
+            eps = [np.finfo(np.asarray(v).dtype).eps for v in (q0, qdot0) if np.asarray(v).dtype.kind == "f"]
             q0, qdot0, u0 = (
                 self._checked("q0", q0, "q"),
                 self._checked("qdot0", qdot0, "q"),
@@ -149,6 +159,7 @@ class DiscreteDynamics(eqx.Module):
                 if not np.all(np.isfinite(np.asarray(v))):
                     raise ValueError(f"'{name}' must be finite, got {np.asarray(v)}")
             viol, tol = known_initial_violation(self.system, q0, qdot0, Constant(u0), 0.0)[1:]
+            tol *= max(1.0, max(eps, default=0.0) / float(np.finfo(q0.dtype).eps)) ** 0.75
             if not viol <= tol:
                 raise ValueError(
                     f"'qdot0' violates the constraints of {type(self.system).__name__} "

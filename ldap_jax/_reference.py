@@ -87,6 +87,12 @@ def _check_ts(ts: Any, t0: ArrayLike) -> Array:
     return ts
 
 
+def default_tolerance(dtype: Any) -> float:
+    """:func:`reference`'s default ``rtol`` and ``atol`` in ``dtype``: 1e-11 in float64, 1e-6 in
+    float32 (its ``eps`` is 1.2e-7)."""
+    return 1e-11 if jnp.finfo(dtype).eps < 1e-10 else 1e-6
+
+
 def reference(
     system: AbstractSystem,
     q0: ArrayOrSequence,
@@ -95,8 +101,8 @@ def reference(
     ts: ArrayOrSequence,
     *,
     t0: ArrayLike = 0.0,
-    rtol: float = 1e-11,
-    atol: float = 1e-11,
+    rtol: float | None = None,
+    atol: float | None = None,
     solver: Any = None,
     max_steps: int = 200_000,
     check_constraints: bool = True,
@@ -121,7 +127,8 @@ def reference(
         ts: non-decreasing, finite sample times (T,), all ``>= t0``; e.g. ``traj.t`` of a
             :func:`~ldap_jax.simulate` run, or just ``[t_final]``.
         t0: the time at which ``(q0, qdot0)`` is given (default 0, as for :func:`~ldap_jax.simulate`).
-        rtol, atol: positive tolerances (default 1e-11 each; float64 recommended: enable ``jax_enable_x64``).
+        rtol, atol: positive tolerances (default ``None``: 1e-11 each in float64, 1e-6 in float32,
+            whose round-off 1e-11 is far below: the solve would spend ``max_steps`` and fail).
         solver: a diffrax solver (default ``diffrax.Dopri8()``).
         max_steps: cap on solver steps (accepted and rejected; default 200000).
         check_constraints: check that ``qdot0`` satisfies the constraints (default ``True``).
@@ -136,8 +143,9 @@ def reference(
     controls, q0, qdot0 = check_problem(system, controls, q0, qdot0, policies=False, caller="reference")
     t0 = check_scalar("t0", t0)
     ts = _check_ts(ts, t0)
-    rtol = check_positive_number("rtol", rtol)
-    atol = check_positive_number("atol", atol)
+    tight = default_tolerance(jnp.result_type(q0, qdot0))
+    rtol = tight if rtol is None else check_positive_number("rtol", rtol)
+    atol = tight if atol is None else check_positive_number("atol", atol)
     max_steps = check_positive_int("max_steps", max_steps)
     import diffrax
 

@@ -617,3 +617,47 @@ def test_residual_diagnostics_have_finite_derivatives_at_rest():
     p = jnp.zeros(2)
     for jac in (jax.jacrev, jax.jacfwd):
         np.testing.assert_array_equal(np.asarray(jax.jit(jac(loss))(p)), np.zeros((2, 2)))
+
+
+def test_float32_defaults_and_checks():
+    """In float32 (float32 inputs, float64 on): ``lj.reference``'s default tolerances are 1e-6, not
+    float64's 1e-11 (which spent ``max_steps`` and failed), and its solution is within float32's
+    reach of the float64 one; the constraint check on ``qdot0`` rejects a car velocity 0.1% off its
+    rolling constraint (its tolerance was 1e4 eps = 6.4e-3 there); ``lj.discretize`` with a
+    float32 step takes float64 states and controls into its float32 dynamics; ``lc.solve``'s
+    default tolerance on a float32 task is 1e-5 and a tighter one warns."""
+    import warnings
+
+    from ldap_jax import control as lc
+    from ldap_jax._validation import cast_floats
+    from ldap_jax.control._solve import _checked
+
+    car = SYSTEMS["car"]
+    q0 = np.array([0.1, -0.2, 0.3, 0.0, 0.2])
+    qdot0 = np.asarray(
+        car.qdot_from_velocities(jax.device_put(q0), jax.device_put(np.array([5.0])), np.zeros(2))
+    )
+    ctl = lj.Sinusoids(jnp.array([[0.3], [0.5]]), jnp.array([[3.0], [2.0]]), jnp.array([[0.0], [0.0]]))
+    ts = np.array([0.0, 0.5, 1.0])
+    exact = lj.reference(car, q0, qdot0, ctl, ts)
+    # a float32 run: qdot0 built on the float32 pose (in float64 arithmetic, then rounded)
+    q32 = q0.astype(np.float32)
+    qd32 = np.asarray(
+        car.qdot_from_velocities(jax.device_put(q32.astype(np.float64)), jnp.array([5.0]), jnp.zeros(2))
+    ).astype(np.float32)
+    ctl32 = cast_floats(ctl, jnp.float32)
+    sol = lj.reference(car, q32, qd32, ctl32, ts.astype(np.float32))
+    assert code(sol.result) == code(lj.RESULTS.successful) and sol.q.dtype == jnp.float32
+    assert np.max(np.abs(np.asarray(sol.q, float) - np.asarray(exact.q))) < 1e-4
+    bad = qd32.copy()
+    bad[0] *= 1.001  # the rolling constraint broken by 0.1%
+    with pytest.raises(ValueError, match="'qdot0' violates the constraints"):
+        lj.simulate(car, q32, bad, ctl32, t_final=1.0, n_steps=4, diagnostics=False)
+    dyn = lj.discretize(car, h=jnp.float32(0.1))
+    assert dyn.init(q0, qdot0, np.zeros(2)).dtype == jnp.float32  # float64 inputs, float32 dynamics
+    task = cast_floats(lc.parallel_park(n_steps=20), jnp.float32)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert float(_checked(task, None, None, 1000, "base", 0.1, None)[0].tol) == pytest.approx(1e-5)
+    with pytest.warns(UserWarning, match=r"KKT tolerance \(1e-08\) is below float32 round-off"):
+        _checked(task, None, 1e-8, 1000, "base", 0.1, None)

@@ -194,7 +194,9 @@ def floquet(M: np.ndarray, *, cluster: float = 1e-3, rank_tol: float = 1e-7) -> 
     }
 
 
-def replay_gait(task: Task, params, *, cycles: int = 3, rtol: float = 1e-11, atol: float = 1e-11) -> dict:
+def replay_gait(
+    task: Task, params, *, cycles: int = 3, rtol: float | None = None, atol: float | None = None
+) -> dict:
     """Replay a gait for ``cycles`` periods on the high-accuracy reference (:func:`ldap_jax.reference`)
     from the optimised start, and analyse its cycle on the model.
 
@@ -203,7 +205,7 @@ def replay_gait(task: Task, params, *, cycles: int = 3, rtol: float = 1e-11, ato
         params: its solution's parameters (``lc.solve(task).params``: :class:`GaitParams`; the
             :class:`~ldap_jax.control.Solution` itself is taken as its ``params``).
         cycles: periods to replay (a positive integer; default 3).
-        rtol, atol: the reference's tolerances (default 1e-11).
+        rtol, atol: the reference's tolerances (default ``None``: 1e-11 in float64, 1e-6 in float32).
 
     Returns:
         A dict with ``displacement`` (cycles, 3): each cycle's net displacement

@@ -19,9 +19,9 @@ from ._terms import pose_error
 __all__ = ["replay", "gradient_memory"]
 
 
-def replay(task: Task, params, *, rtol: float = 1e-11, atol: float = 1e-11) -> dict:
+def replay(task: Task, params, *, rtol: float | None = None, atol: float | None = None) -> dict:
     """Replay the optimized controls on the high-accuracy reference (:func:`ldap_jax.reference`,
-    at tolerances ``rtol`` and ``atol``, default 1e-11 each).
+    at tolerances ``rtol`` and ``atol``, default ``None``: the reference's, 1e-11 each in float64).
 
     Returns a dict with the reference configurations ``q_ref`` at the step times, the model's
     ``q_model``, the terminal errors against the goal when the task has one (else the model error

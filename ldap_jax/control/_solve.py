@@ -104,7 +104,7 @@ def solve(
     task: Task,
     params0=None,
     *,
-    tol: float = 1e-8,
+    tol: float | None = None,
     max_iterations: int = 1000,
     hessian: str = "base",
     curvature_tol: float = 0.1,
@@ -148,7 +148,8 @@ def solve(
             (``task.init()`` gives one when ``task.guess.starts > 1``) runs every guess (one
             after another in one program) and returns the converged solution of least cost
             (``Solution.starts``). A previous :class:`Solution` counts as its ``params``.
-        tol: stopping tolerance on the scaled KKT error (> 0; default 1e-8).
+        tol: stopping tolerance on the scaled KKT error (> 0; default ``None``: 1e-8 in float64,
+            1e-5 in float32, whose round-off puts 1e-8 out of reach).
         max_iterations: iteration budget (a positive integer; default 1000, IPOPT's is 3000).
         hessian: ``"base"`` (default): for ``lj.RDP(order=4, 6 or 8)`` the curvature of the dynamics
             comes from the base step ``lj.RDP(order=2)`` over the same ``h``
@@ -174,7 +175,7 @@ def solve(
             non-positive ``tol``, ``max_iterations`` or ``curvature_tol``.
 
     Warns:
-        UserWarning: when the task runs in float32 (float64 disabled): the KKT tolerance is then
+        UserWarning: when the task runs in float32 with a ``tol`` below 1e-6: that KKT tolerance is
             out of reach and the line search fails near the solution.
     """
     options, params0, batched = _checked(task, params0, tol, max_iterations, hessian, curvature_tol, barrier)
@@ -234,7 +235,8 @@ def _checked(task, params0, tol, max_iterations, hessian, curvature_tol, barrier
             "solve needs per-step sampled controls (lc.SampledControls); this task uses "
             f"{type(task.parameterization).__name__}: optimise it with lc.optimize"
         )
-    tol = check_positive_number("tol", tol)
+    dtype = task.bounds.q_lower.dtype
+    tol = (1e-5 if dtype == jnp.float32 else 1e-8) if tol is None else check_positive_number("tol", tol)
     max_iterations = check_positive_int("max_iterations", max_iterations)
     if hessian not in ("base", "exact"):
         raise ValueError(f"'hessian' must be 'base' or 'exact', got {hessian!r}")
@@ -242,11 +244,12 @@ def _checked(task, params0, tol, max_iterations, hessian, curvature_tol, barrier
     if barrier is None:
         barrier = 0.1 if task.periodic is None else 1e-3
     barrier = check_positive_number("barrier", barrier)
-    dtype = task.bounds.q_lower.dtype
-    if dtype == jnp.float32 and not jax.config.jax_enable_x64:
+    if dtype == jnp.float32 and tol < 1e-6:
+        why = "because jax_enable_x64 is off" if not jax.config.jax_enable_x64 else "(a float32 task)"
         warnings.warn(
-            "lc.solve runs in float32 because jax_enable_x64 is off: its KKT tolerance (1e-8) is below "
-            'float32 round-off; enable float64 (jax.config.update("jax_enable_x64", True))',
+            f"lc.solve runs in float32 {why}: its KKT tolerance ({tol:g}) is below float32 round-off "
+            "and the line search will fail near the solution; use tol >= 1e-5 (the float32 default) or "
+            'float64 (jax.config.update("jax_enable_x64", True))',
             stacklevel=3,
         )
     if params0 is None:
