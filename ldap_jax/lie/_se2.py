@@ -20,6 +20,7 @@ values *and* gradients are finite there.
 
 from __future__ import annotations
 
+import math
 from typing import Any, ClassVar
 
 import equinox as eqx
@@ -74,27 +75,37 @@ def small_angle(w: Array) -> tuple[Array, Array]:
     return small, jnp.where(small, jnp.ones_like(w), w)
 
 
+def _horner(x: Array, coefficients: tuple[float, ...]) -> Array:
+    """``sum_k c_k x^k`` by Horner's scheme: one multiply-add per coefficient (the coefficients as
+    constants, not divisions, which the compiler keeps as divisions and which cost the rollout's
+    composed step 8-12%)."""
+    out = coefficients[-1]
+    for c in coefficients[-2::-1]:
+        out = out * x + c
+    return out
+
+
+#: Taylor coefficients in ``w^2``: ``sin(w)/w`` ((-1)^k / (2k+1)!), ``(1 - cos w)/w`` divided by
+#: ``w`` ((-1)^k / (2k+2)!), and their derivatives divided by ``w`` and by 1
+_SINC = tuple((-1) ** k / math.factorial(2 * k + 1) for k in range(5))
+_COSC = tuple((-1) ** k / math.factorial(2 * k + 2) for k in range(5))
+_DSINC = tuple((-1) ** (k + 1) * (2 * k + 2) / math.factorial(2 * k + 3) for k in range(5))
+_DCOSC = tuple((-1) ** k * (2 * k + 1) / math.factorial(2 * k + 2) for k in range(6))
+
+
 def exp_series(w: Array) -> tuple[Array, Array]:
     """Taylor series of ``sin(w) / w`` and ``(1 - cos w) / w`` through ``w^10`` and ``w^11``
-    (Horner form in ``w^2``): exact to round-off below :func:`small_angle`'s threshold. Then
+    (Horner's scheme in ``w^2``): exact to round-off below :func:`small_angle`'s threshold. Then
     ``sin w = w sin(w)/w`` and ``cos w = 1 - w (1 - cos w)/w``."""
     w2 = w * w
-    sinc = 1.0 - w2 / 72.0 * (1.0 - w2 / 110.0)
-    sinc = 1.0 - w2 / 6.0 * (1.0 - w2 / 20.0 * (1.0 - w2 / 42.0 * sinc))
-    cosc = 1.0 - w2 / 90.0 * (1.0 - w2 / 132.0)
-    cosc = 0.5 * w * (1.0 - w2 / 12.0 * (1.0 - w2 / 30.0 * (1.0 - w2 / 56.0 * cosc)))
-    return sinc, cosc
+    return _horner(w2, _SINC), w * _horner(w2, _COSC)
 
 
 def exp_series_derivative(w: Array) -> tuple[Array, Array]:
     """Derivatives of :func:`exp_series` with respect to ``w`` (series through ``w^9`` and
     ``w^10``), for a hand-written VJP."""
     w2 = w * w
-    dsinc = 1.0 - w2 / 54.0 * (1.0 - w2 / 88.0)
-    dsinc = -w / 3.0 * (1.0 - w2 / 10.0 * (1.0 - w2 / 28.0 * dsinc))
-    dcosc = 1.0 - w2 / 70.0 * (1.0 - w2 / 108.0)
-    dcosc = 0.5 * (1.0 - w2 / 4.0 * (1.0 - w2 / 18.0 * (1.0 - w2 / 40.0 * dcosc)))
-    return dsinc, dcosc
+    return w * _horner(w2, _DSINC), _horner(w2, _DCOSC)
 
 
 def exp_parts(w: Array, sin_w: Array, cos_w: Array) -> tuple[Array, Array, Array, Array]:
@@ -122,7 +133,7 @@ def exp_translation(w: Array, v2: Array, v3: Array, sin_w: Array, cos_w: Array) 
 def _cot_series(w2: Array) -> Array:
     """``P(w^2)`` with ``(w/2) cot(w/2) = 1 - (w^2 / 12) P`` (Bernoulli numbers, through ``w^8``
     in ``P``): ``1 + w^2/60 + w^4/2520 + w^6/100800 + w^8/3991680``."""
-    return 1.0 + w2 / 60.0 * (1.0 + w2 / 42.0 * (1.0 + w2 / 40.0 * (1.0 + w2 * (5.0 / 198.0))))
+    return _horner(w2, (1.0, 1.0 / 60.0, 1.0 / 2520.0, 1.0 / 100800.0, 1.0 / 3991680.0))
 
 
 def _half_cot_half(w: Array) -> Array:
