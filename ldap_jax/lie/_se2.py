@@ -94,7 +94,7 @@ _DCOSC = tuple((-1) ** k * (2 * k + 1) / math.factorial(2 * k + 2) for k in rang
 
 
 def exp_series(w: Array) -> tuple[Array, Array]:
-    """Taylor series of ``sin(w) / w`` and ``(1 - cos w) / w`` through ``w^10`` and ``w^11``
+    """Taylor series of ``sin(w) / w`` and ``(1 - cos w) / w`` through ``w^8`` and ``w^9``
     (Horner's scheme in ``w^2``): exact to round-off below :func:`small_angle`'s threshold. Then
     ``sin w = w sin(w)/w`` and ``cos w = 1 - w (1 - cos w)/w``."""
     w2 = w * w
