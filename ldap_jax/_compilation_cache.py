@@ -254,6 +254,14 @@ def asarray(x: Any, dtype: Any = None) -> jax.Array:
     return jax.device_put(a)
 
 
+def as_dtype(x: Any, dtype: Any) -> jax.Array:
+    """``x`` (an array or a tracer) converted to ``dtype``: a known value through the host
+    (:func:`asarray`, no eager conversion program), a traced one by ``astype``."""
+    if isinstance(x, jax.core.Tracer):
+        return x.astype(dtype)
+    return asarray(np.asarray(x), dtype)
+
+
 def compiler_options() -> dict[str, Any] | None:
     """The XLA compile options of the library's programs: those of :data:`FAST_COMPILE_OPTIONS`
     that this XLA knows (each checked once, by compiling a one-operation program; with the

@@ -24,7 +24,7 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Float
 
 from . import _tracing
-from ._compilation_cache import asarray, compiled_unless_staged
+from ._compilation_cache import as_dtype, compiled_unless_staged
 from ._controls import Constant
 from ._linalg import solve
 from ._results import RESULTS
@@ -89,7 +89,7 @@ class DiscreteDynamics(eqx.Module):
         x = check_array(name, x, (n,), f"({what} of this {type(self.system).__name__} discretization)")
         dtype = self.h.dtype  # the dynamics' dtype (h's): inputs of another are converted to it
         if x.dtype != dtype:
-            x = asarray(np.asarray(x), dtype) if is_concrete(x) else x.astype(dtype)
+            x = as_dtype(x, dtype)
         return x
 
     def _minimal(self) -> bool:

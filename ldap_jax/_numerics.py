@@ -194,13 +194,15 @@ def safe_norm(*xs: Array) -> Array:
     """``sqrt(x_1^2 + ... + x_n^2)`` of scalars, with derivative 0 (not NaN) where every ``x_i``
     vanishes: the residual diagnostics are norms of quantities that are exactly zero on a run at
     rest, and ``sqrt``'s infinite slope at 0 made their derivatives NaN there."""
-    s = sum(x * x for x in xs)
-    pos = s > 0
-    return jnp.where(pos, jnp.sqrt(jnp.where(pos, s, 1.0)), 0.0)
+    return _safe_sqrt(sum(x * x for x in xs))
 
 
 def safe_vnorm(v: Array) -> Array:
     """The Euclidean norm of a vector, as :func:`safe_norm` (derivative 0 at ``v = 0``)."""
-    s = jnp.sum(v * v)
+    return _safe_sqrt(jnp.sum(v * v))
+
+
+def _safe_sqrt(s: Array) -> Array:
+    """``sqrt(s)`` for ``s >= 0`` with derivative 0 at ``s = 0`` (the double ``where``)."""
     pos = s > 0
     return jnp.where(pos, jnp.sqrt(jnp.where(pos, s, 1.0)), 0.0)

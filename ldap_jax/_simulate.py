@@ -9,10 +9,9 @@ from typing import Any
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from ._compilation_cache import asarray, jit, note_program, program_key
+from ._compilation_cache import as_dtype, jit, note_program, program_key
 from ._controls import AbstractControls, Constant
 from ._policy import AbstractPolicy, LinearPolicy, Policy
 from ._results import RESULTS
@@ -26,7 +25,6 @@ from ._validation import (
     check_positive_number,
     check_scalar,
     input_result,
-    is_concrete,
     raise_if_concrete,
 )
 from .integrators import RDP, AbstractIntegrator
@@ -138,9 +136,7 @@ def check_problem(
     qdot0 = check_array("qdot0", qdot0, (d,), f"for {type(system).__name__}")
     if q0.dtype != qdot0.dtype:  # the run's common dtype, in which the checks must also be made
         dtype = jnp.result_type(q0, qdot0)
-        q0, qdot0 = (
-            asarray(np.asarray(x), dtype) if is_concrete(x) else x.astype(dtype) for x in (q0, qdot0)
-        )
+        q0, qdot0 = as_dtype(q0, dtype), as_dtype(qdot0, dtype)
     if jnp.result_type(q0, qdot0) == jnp.float32 and not jax.config.jax_enable_x64:
         warnings.warn(
             f"ldap_jax.{caller} runs in float32 because jax_enable_x64 is off; enable float64 "

@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ._compilation_cache import asarray, in_trace
+from ._compilation_cache import as_dtype, asarray, in_trace
 from ._controls import Constant, Sampled
 from ._fields import converter_field as converter_field
 from ._policy import AbstractPolicy
@@ -84,8 +84,7 @@ def check_array(name: str, x: Any, shape: tuple[int, ...], context: str = "") ->
     except (TypeError, ValueError) as err:
         raise TypeError(f"'{name}' must be an array of numbers, got {x!r}") from err
     if jnp.issubdtype(x.dtype, jnp.integer) or x.dtype == jnp.bool_:
-        real = jnp.result_type(float)
-        x = asarray(np.asarray(x), real) if is_concrete(x) else x.astype(real)
+        x = as_dtype(x, jnp.result_type(float))
     if np.dtype(x.dtype) not in _SUPPORTED:
         raise ValueError(f"'{name}' must be float32 or float64, got dtype {x.dtype}")
     if x.shape != shape:

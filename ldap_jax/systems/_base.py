@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from .._compilation_cache import asarray, compiled_unless_staged
+from .._compilation_cache import as_dtype, asarray, compiled_unless_staged
 from .._linalg import solve
 from .._numerics import safe_vnorm
 
@@ -60,8 +60,7 @@ def physical_parameter(x: Any) -> Array:
     if not (jnp.issubdtype(x.dtype, jnp.floating) or jnp.issubdtype(x.dtype, jnp.integer)):
         raise bad(f"real (dtype {x.dtype})")
     if not jnp.issubdtype(x.dtype, jnp.floating):
-        real = jnp.result_type(float)
-        x = asarray(np.asarray(x), real) if concrete(x) else x.astype(real)
+        x = as_dtype(x, jnp.result_type(float))
     return x
 
 
