@@ -18,15 +18,17 @@ otherwise hang or mislead:
 
 from __future__ import annotations
 
+import collections
 import hashlib
 import os
+import socket
 import sys
 import threading
 from collections.abc import Mapping
 
 import numpy as np
 
-__all__ = ["SettingsMismatch", "initialize", "EXIT_TIMEOUT"]
+__all__ = ["CoordinatorBusy", "SettingsMismatch", "initialize", "EXIT_TIMEOUT"]
 
 #: Exit status of a process whose start-up missed its deadline.
 EXIT_TIMEOUT = 3
@@ -42,6 +44,10 @@ class SettingsMismatch(ValueError):
     def __init__(self, message: str, names: tuple[str, ...]):
         super().__init__(message)
         self.names = names
+
+
+class CoordinatorBusy(ValueError):
+    """Process 0 cannot serve the coordinator: its port is taken on this machine."""
 
 
 def initialize(
@@ -75,7 +81,9 @@ def initialize(
 
     Raises:
         ValueError: missing or inconsistent arguments (named).
-        SettingsMismatch: some ``settings`` differ between processes (named).
+        CoordinatorBusy: (process 0) the coordinator's port is in use on this machine.
+        SettingsMismatch: some ``settings`` differ between processes (named), or the processes
+            hold different numbers of devices (named ``--cpu-devices``).
     """
     import jax
 
@@ -87,6 +95,8 @@ def initialize(
         )
     if num_processes is not None and not 0 <= (process_id or 0) < num_processes:
         raise ValueError(f"'process_id' must be in 0..{num_processes - 1}, got {process_id}")
+    if process_id == 0 and coordinator is not None:
+        _check_port_free(coordinator)
     # JAX reads the job launcher's settings unless detection is off; "auto": every method
     detection = {None: "deactivate", "auto": None}.get(cluster, cluster)
     where = coordinator or "the address given by the job launcher"
@@ -99,17 +109,48 @@ def initialize(
             initialization_timeout=int(timeout) + 30,  # ours expires first, with a message
         )
         jax.devices()  # the processes exchange their devices here
+        _same_device_counts()
         if settings:
             _agree(dict(settings))
     return jax.process_index()
 
 
+def _check_port_free(coordinator: str) -> None:
+    """Raise :class:`CoordinatorBusy` if the coordinator's port is taken on this machine (JAX's
+    coordinator would crash the process, or fail with "Failed to start RPC server")."""
+    port = int(coordinator.rpartition(":")[2])
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # a closed port's TIME_WAIT is free
+        try:
+            s.bind(("", port))
+        except OSError as err:
+            raise CoordinatorBusy(
+                f"process 0 serves the coordinator at {coordinator}, but port {port} is in use on this "
+                f"machine ({err.strerror}): choose another port (another run may still hold it)"
+            ) from None
+
+
+def _same_device_counts() -> None:
+    """Raise :class:`SettingsMismatch` (``--cpu-devices``) in every process if the processes hold
+    different numbers of devices: every process sees every device, so no exchange is needed."""
+    import jax
+
+    counts = collections.Counter(d.process_index for d in jax.devices())
+    if len(set(counts.values())) > 1:
+        each = ", ".join(f"process {p}: {c}" for p, c in sorted(counts.items()))
+        raise SettingsMismatch(
+            f"the processes hold different numbers of devices ({each}); start every process with the "
+            "same number (on CPUs: the same --cpu-devices)",
+            ("--cpu-devices",),
+        )
+
+
 def _late_message(where: str, n: int | None, i: int | None, timeout: float) -> str:
-    this = "this process" if i is None else f"this is process {i} (--process-id)"
+    this = "" if i is None else f" (this is process {i}, --process-id)"
     count = "all processes" if n is None else f"all {n} processes (--num-processes)"
     return (
         f"ldap_jax: {count} did not join within {timeout:g} s (--init-timeout) through the "
-        f"coordinator at {where} (--coordinator); {this}. Start every process with the same "
+        f"coordinator at {where} (--coordinator){this}. Start every process with the same "
         "--coordinator and --num-processes and its own --process-id in 0..num_processes - 1, "
         "and check that the coordinator's host and port are reachable from every machine."
     )

@@ -11,8 +11,9 @@ with a cluster's job launcher; to try it on one machine::
 
 starts ``python scripts/sweep.py --quick --out results --coordinator 127.0.0.1:PORT
 --num-processes 2 --process-id I --cpu-devices 1`` for I = 0, 1 (a free port, each process with
-``--cpu-devices`` CPU devices), waits for all of them, and, if one fails, stops the others and
-exits with its status.
+``--cpu-devices`` CPU devices; the command must not give its own), waits for all of them, and,
+if one fails, says which, stops the others and exits with its status. Ctrl-C or ``SIGTERM`` to
+the launcher stops them all.
 
 A script joins a run with :func:`add_arguments` (the options ``--coordinator``,
 ``--num-processes``, ``--process-id``, ``--cluster``, ``--init-timeout``; the first three also
@@ -30,6 +31,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 
@@ -139,7 +141,7 @@ def start(args: argparse.Namespace, error: Callable[[str], object], settings: Ma
     """
     if not args.distributed:
         return 0
-    from ._distributed import SettingsMismatch, initialize
+    from ._distributed import CoordinatorBusy, SettingsMismatch, initialize
 
     try:
         return initialize(
@@ -152,7 +154,11 @@ def start(args: argparse.Namespace, error: Callable[[str], object], settings: Ma
         )
     except SettingsMismatch as err:
         error(f"argument {', '.join(err.names)}: {err}")
+    except CoordinatorBusy as err:
+        error(f"argument --coordinator: {err}")
     except ValueError as err:  # JAX's own check of what a job launcher gave it
+        if args.cluster is None:
+            raise
         error(f"argument --cluster: {err}")
     raise AssertionError("unreachable: 'error' returned")  # pragma: no cover
 
@@ -175,8 +181,11 @@ def launch(
     grace: float = 5.0,
 ) -> int:
     """Run ``command`` as ``n`` processes, each with the options of process ``i`` of the run
-    appended; wait for all of them. If one fails, stop the others (``SIGTERM``, then ``SIGKILL``
-    after ``grace`` seconds) and return its exit status; else return 0.
+    appended; wait for all of them. If one fails, name it on stderr, stop the others (``SIGTERM``,
+    then ``SIGKILL`` after ``grace`` seconds) and return its exit status (``128 + signal`` for a
+    process killed by a signal); else return 0. ``KeyboardInterrupt`` or ``SIGTERM`` (received in
+    the main thread) stops them all too, returning ``128 + SIGINT`` or ``128 + SIGTERM``. Defaults:
+    one CPU device per process, ``host`` 127.0.0.1, a free port, a poll every 0.05 s, 5 s of grace.
 
     Raises:
         ValueError: ``n`` or ``cpu_devices`` below 1, or an empty command.
@@ -196,19 +205,57 @@ def launch(
         )
         for i in range(n)
     ]
+    # a supervisor's SIGTERM stops the processes too, as Ctrl-C does (else they run on, orphaned)
+    previous = _on_sigterm(_terminate)
     try:
         while True:
             codes = [p.poll() for p in procs]
-            failed = next((c for c in codes if c not in (None, 0)), None)
+            failed = next((i for i, c in enumerate(codes) if c not in (None, 0)), None)
             if failed is not None:
-                return 128 - failed if failed < 0 else failed  # killed by a signal: 128 + its number
+                code = codes[failed]
+                print(
+                    f"ldap_jax.launch: process {failed} (pid {procs[failed].pid}) {_status(code)}; "
+                    "stopping the others",
+                    file=sys.stderr,
+                    flush=True,
+                )
+                return 128 - code if code < 0 else code  # killed by a signal: 128 + its number
             if all(c == 0 for c in codes):
                 return 0
             time.sleep(poll)
     except KeyboardInterrupt:
         return 128 + signal.SIGINT
+    except _Terminated:
+        return 128 + signal.SIGTERM
     finally:
         _stop(procs, grace)
+        _on_sigterm(previous)
+
+
+class _Terminated(Exception):
+    """The launcher received SIGTERM."""
+
+
+def _terminate(signum, frame):
+    raise _Terminated
+
+
+def _on_sigterm(handler):
+    """Install ``handler`` for SIGTERM (main thread only; elsewhere nothing changes) and return
+    the handler it replaces."""
+    if handler is None or threading.current_thread() is not threading.main_thread():
+        return None
+    return signal.signal(signal.SIGTERM, handler)
+
+
+def _status(code: int) -> str:
+    if code >= 0:
+        return f"exited with status {code}"
+    try:
+        name = signal.Signals(-code).name
+    except ValueError:
+        name = f"signal {-code}"
+    return f"was killed by {name}"
 
 
 def _stop(procs: list[subprocess.Popen], grace: float) -> None:
@@ -244,6 +291,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             parser.error(f"argument {flag}: must be a positive integer, got {value}")
     if args.port is not None and not 0 < args.port < 65536:
         parser.error(f"argument --port: must be in 1..65535, got {args.port}")
+    given = next((a for a in command[1:] if a == "--cpu-devices" or a.startswith("--cpu-devices=")), None)
+    if given is not None:
+        parser.error(
+            f"argument command: leave out {given!r}: the launcher gives each process its own "
+            "(python -m ldap_jax.launch --cpu-devices K -n P -- ...)"
+        )
     if shutil.which(command[0]) is None:
         parser.error(f"argument command: {command[0]!r} is not a program on PATH (nor an executable path)")
     return launch(command, args.num_processes, cpu_devices=args.cpu_devices, host=args.host, port=args.port)

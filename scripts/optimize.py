@@ -250,17 +250,23 @@ def parse_args(argv=None):
         parser.error(
             "argument --starts: multi-start applies to --solver optimize (lc.solve starts from one guess)"
         )
+    args.error = parser.error
+    if args.process_id == 0 or not args.distributed:  # under --cluster: once process 0 is known
+        check_folders(args)
+    return args
+
+
+def check_folders(args) -> None:
+    """Check (and create) ``--out`` and ``--cache``, in the process that writes them."""
     for flag, path in (("--out", args.out), ("--cache", args.cache)):
-        if path is None or args.process_id not in (0, None):  # only process 0 writes
+        if path is None:
             continue
         if pathlib.Path(path).exists() and not pathlib.Path(path).is_dir():
-            parser.error(f"argument {flag}: {path!r} exists and is not a directory")
+            args.error(f"argument {flag}: {path!r} exists and is not a directory")
         try:
             pathlib.Path(path).mkdir(parents=True, exist_ok=True)
         except OSError as err:
-            parser.error(f"argument {flag}: cannot create {path!r}: {err}")
-    args.error = parser.error
-    return args
+            args.error(f"argument {flag}: cannot create {path!r}: {err}")
 
 
 #: --family: the members' goals spread over this much (x [m], y [m], theta [rad]) around the task's
@@ -292,6 +298,8 @@ def solve_family(args) -> int:
     keys = ("model", "task", "family", "integrator", "iterations", "n_steps", "quick")
     settings = {f"--{k.replace('_', '-')}": getattr(args, k) for k in keys}
     lead = launch.start(args, args.error, settings) == 0
+    if lead and args.process_id is None:
+        check_folders(args)  # --cluster: this process is the one that writes
     kw = {} if args.n_steps is None else {"n_steps": args.n_steps}
     task = lc.TASKS[(args.model, args.task)](integrator=INTEGRATORS[args.integrator](), **kw)
     n_iter = 1000 if args.iterations is None else args.iterations

@@ -166,7 +166,7 @@ def parse_args(argv=None):
     args = p.parse_args(argv)
     options.check_arguments(args, p.error)
     args.error = p.error
-    if not args.list and args.process_id in (0, None):
+    if not args.list and (args.process_id == 0 or not args.distributed):
         check_out(args)  # by the process that writes (unknown yet under --cluster: checked later)
     return args
 

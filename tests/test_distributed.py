@@ -226,9 +226,9 @@ def test_point_statistics_ignore_padding_and_match_numpy():
     np.testing.assert_allclose(float(stats["final_error_max"]), np.max(err[ok, -1]), rtol=1e-14)
 
 
-def test_launcher_stops_the_others_when_one_fails(tmp_path):
-    """The launcher gives each process its options; when one fails it stops the others and
-    returns that status; when all succeed it returns 0."""
+def test_launcher_stops_the_others_when_one_fails(tmp_path, capfd):
+    """The launcher gives each process its options; when one fails it names it, stops the others
+    and returns that status; when all succeed it returns 0."""
     child = (
         "import sys, time, pathlib\n"
         "argv = sys.argv[1:]\n"
@@ -248,6 +248,7 @@ def test_launcher_stops_the_others_when_one_fails(tmp_path):
     start = time.monotonic()
     assert launch.launch([sys.executable, "-c", child, "fail"], 3, cpu_devices=2) == 5
     assert time.monotonic() - start < 30  # process 0 and 2 were stopped, not waited for
+    assert "process 1 (pid " in capfd.readouterr().err.split("ldap_jax.launch: ")[-1]
     argv = (tmp_path / "p2").read_text().split()
     assert argv[argv.index("--num-processes") + 1] == "3" and argv[argv.index("--cpu-devices") + 1] == "2"
     host, port = argv[argv.index("--coordinator") + 1].rsplit(":", 1)
@@ -260,6 +261,105 @@ def test_launcher_stops_the_others_when_one_fails(tmp_path):
     with pytest.raises(SystemExit) as exit_info:
         launch.main(["-n", "2", "--", "no_such_program_ldap_jax"])
     assert exit_info.value.code == 2
+    # the launcher gives each process its --cpu-devices: a command's own would silently lose
+    capfd.readouterr()
+    with pytest.raises(SystemExit) as exit_info:
+        launch.main(["-n", "2", "--", sys.executable, "-c", child, "ok", "--cpu-devices=2"])
+    assert exit_info.value.code == 2 and "'--cpu-devices=2'" in capfd.readouterr().err
+
+
+def test_launcher_stops_its_processes_on_sigterm(tmp_path):
+    """A supervisor's SIGTERM to the launcher stops its processes too (status 128 + 15), as Ctrl-C
+    does: they do not run on, orphaned, writing the run's files after it has "stopped"."""
+    child = (
+        "import os, sys, time, pathlib\n"
+        "i = sys.argv[sys.argv.index('--process-id') + 1]\n"
+        f"pathlib.Path(r'{tmp_path}', 'pid' + i).write_text(str(os.getpid()))\n"
+        "time.sleep(60)\n"
+    )
+    cmd = [sys.executable, "-m", "ldap_jax.launch", "-n", "2", "--", sys.executable, "-c", child]
+    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)
+    try:
+        end = time.monotonic() + 30
+        while len(list(tmp_path.glob("pid*"))) < 2 and time.monotonic() < end:
+            time.sleep(0.05)
+        pids = [int(f.read_text()) for f in tmp_path.glob("pid*") if f.read_text()]
+        assert len(pids) == 2
+        time.sleep(0.2)  # the pid files are written before the children's sleep
+        proc.terminate()
+        err = proc.communicate(timeout=20)[1]
+        assert proc.returncode == 128 + 15, err
+    finally:
+        proc.kill()
+        proc.communicate()
+    end = time.monotonic() + 10
+    while any(_alive(p) for p in pids) and time.monotonic() < end:
+        time.sleep(0.05)
+    assert not any(_alive(p) for p in pids)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    # a finished child of an ended parent is reaped by init; a zombie still answers kill(0)
+    with open(f"/proc/{pid}/stat") as fh:
+        return fh.read().split(")")[-1].split()[0] != "Z"
+
+
+def test_a_busy_coordinator_port_and_unequal_device_counts_are_named(monkeypatch):
+    """Process 0 whose coordinator port is taken: a message naming it, before JAX's coordinator
+    would crash the process. Processes holding different numbers of devices: a mismatch named
+    --cpu-devices (JAX's gather of the settings failed with a reshape error)."""
+    import socket
+    from types import SimpleNamespace
+
+    from ldap_jax import _distributed
+
+    with socket.socket() as held:
+        held.bind(("127.0.0.1", 0))
+        held.listen()
+        port = held.getsockname()[1]
+        with pytest.raises(_distributed.CoordinatorBusy, match=f"port {port} is in use"):
+            _distributed.initialize(f"127.0.0.1:{port}", 2, 0, timeout=5.0)
+    devices = [SimpleNamespace(process_index=p) for p in (0, 1, 1)]
+    monkeypatch.setattr(jax, "devices", lambda: devices)
+    with pytest.raises(_distributed.SettingsMismatch, match="process 0: 1, process 1: 2") as info:
+        _distributed._same_device_counts()
+    assert info.value.names == ("--cpu-devices",)
+    devices.pop()
+    _distributed._same_device_counts()
+
+
+def test_cluster_processes_leave_out_to_process_zero(tmp_path, monkeypatch):
+    """Under --cluster no process knows its index before JAX starts, so none checks --out then
+    (process 0 does once it knows: the others may run where --out cannot be made)."""
+    monkeypatch.delenv("EQX_ON_ERROR", raising=False)  # the script sets it: removed afterwards
+    sweep = _load_sweep()
+    (tmp_path / "afile").write_text("")
+    args = sweep.parse_args(["--cluster", "auto", "--out", str(tmp_path / "afile" / "out")])
+    assert args.distributed and args.process_id is None
+    with pytest.raises(SystemExit):
+        sweep.parse_args(["--out", str(tmp_path / "afile" / "out")])
+
+
+def test_chunks_keep_float32_rows_and_close_durations_apart(tmp_path):
+    """A study's rows kept per point: float32 rows in a folder of their own (a float64 study
+    resumed 10-70% off values from them), a duration that 6 digits do not tell apart in a file
+    of its own, and a file whose row is another point's not taken."""
+    durations = (600.0, 600.0004)
+    config = study.StudyConfig(models=("car",), durations=durations, methods=("rdp",), resolutions=(20,))
+    store = study.ChunkStore(tmp_path, config)
+    with jax.enable_x64(False):
+        assert study.ChunkStore(tmp_path, config).folder != store.folder
+    assert store.path(("car", 600.0, "rdp", 20)).endswith("car_600s_rdp_N20.json")
+    assert store.path(("car", 600.0004, "rdp", 20)) != store.path(("car", 600.0, "rdp", 20))
+    row = dict.fromkeys(study.CSV_COLUMNS, 1) | dict(model="car", method="rdp", duration=600.0, n_steps=20)
+    store.save(("car", 600.0, "rdp", 20), row)
+    assert list(store.load([("car", 600.0, "rdp", 20)])) == [0]
+    os.replace(store.path(("car", 600.0, "rdp", 20)), store.path(("car", 600.0, "rdp", 40)))
+    assert store.load([("car", 600.0, "rdp", 40)]) == {}
 
 
 @pytest.mark.parametrize(

@@ -214,6 +214,15 @@ SHARDED = textwrap.dedent(
         f = batched(lambda a, x: jnp.sin(a * x) * a, in_axes=(None, 0))
         return lambda a: jnp.sum(f(a, jnp.linspace(0.0, 1.0, 6)) ** 2)
     np.testing.assert_allclose(jax.grad(loss(lj.shard_vmap))(0.7), jax.grad(loss(jax.vmap))(0.7), rtol=1e-13)
+    # a member that raises in a batch the devices do not divide: an exception, not the others
+    # waiting in the padding's removal until XLA aborts the process
+    import equinox as eqx
+    try:
+        lj.shard_vmap(lambda x: eqx.error_if(x, x == 2.0, "member 2 failed"))(jnp.arange(6.0))
+    except Exception as err:
+        assert "member 2 failed" in str(err), err
+    else:
+        raise AssertionError("no error raised")
     print("OK")
     """
 )
@@ -223,6 +232,7 @@ def test_sharded_equals_unsharded():
     env = dict(os.environ)
     env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4").strip()
     env["JAX_PLATFORMS"] = "cpu"
+    env["EQX_ON_ERROR"] = "raise"  # equinox's default, whatever a script run in this worker set
     out = subprocess.run(
         [sys.executable, "-c", SHARDED], env=env, cwd=ROOT, capture_output=True, text=True, timeout=600
     )

@@ -2,9 +2,10 @@
 
 A study writes the row of every point (one model, duration, method and resolution) to
 ``DIR/<settings>/<model>_<duration>s_<method>_N<n>.json``, where ``<settings>`` is a digest of
-the settings a row depends on (the runs, the seed, the resolutions, the reference step...;
-not the lists of models, durations and methods, which only choose the points), so that
-rows of other settings are never mixed in. A study started again with the same directory loads
+the settings a row depends on (the runs, the seed, the resolutions, the reference step...,
+and float32 when JAX computes in it; not the lists of models, durations and methods, which only
+choose the points), so that rows of other settings are never mixed in; a row is taken only if
+its model, duration, method and resolution are its file's. A study started again with the same directory loads
 the rows it finds and computes only the others. Files are written whole (to a temporary name,
 then renamed), so a study stopped at any moment leaves only complete rows behind.
 
@@ -32,10 +33,19 @@ _NUMBERS = tuple(c for c in CSV_COLUMNS if c not in ("model", "method"))
 _CHOOSERS = ("models", "durations", "methods")
 
 
-def settings_digest(config: StudyConfig) -> str:
-    """A short digest of the settings that a row of ``config`` depends on."""
+def _settings(config: StudyConfig) -> dict:
+    """The settings a row of ``config`` depends on, with the precision JAX computes in: float32
+    (``jax_enable_x64`` off) named, float64 not (the digests of float64 studies stay as they
+    were before the precision was part of them)."""
     settings = {k: v for k, v in dataclasses.asdict(config).items() if k not in _CHOOSERS}
-    text = json.dumps(settings, sort_keys=True, default=list)
+    if not jax.config.read("jax_enable_x64"):
+        settings["precision"] = "float32"
+    return settings
+
+
+def settings_digest(config: StudyConfig) -> str:
+    """A short digest of the settings that a row of ``config`` depends on (and the precision)."""
+    text = json.dumps(_settings(config), sort_keys=True, default=list)
     return hashlib.sha256(text.encode()).hexdigest()[:12]
 
 
@@ -49,12 +59,14 @@ class ChunkStore:
 
     def __init__(self, directory: str | os.PathLike, config: StudyConfig):
         self.folder = os.path.join(os.fspath(directory), settings_digest(config))
-        self._settings = {k: v for k, v in dataclasses.asdict(config).items() if k not in _CHOOSERS}
+        self._settings = _settings(config)
         self._writer = jax.process_index() == 0
 
     def path(self, point: tuple[str, float, str, int]) -> str:
         model, duration, method, n = point
-        return os.path.join(self.folder, f"{model}_{duration:g}s_{method}_N{n}.json")
+        short = f"{duration:g}"  # the name of every duration of 6 digits or fewer; else all of them
+        name = short if float(short) == float(duration) else repr(float(duration))
+        return os.path.join(self.folder, f"{model}_{name}s_{method}_N{n}.json")
 
     def save(self, point: tuple[str, float, str, int], row: dict) -> None:
         """Keep ``row`` (process 0 only; the others do nothing)."""
@@ -93,9 +105,20 @@ class ChunkStore:
                     row = json.load(fh)
             except (OSError, ValueError):  # absent, or not a row: computed again
                 continue
-            if isinstance(row, dict) and set(CSV_COLUMNS) <= set(row):
+            if isinstance(row, dict) and set(CSV_COLUMNS) <= set(row) and _is_row_of(row, point):
                 rows[i] = _typed({c: row[c] for c in CSV_COLUMNS})
         return rows
+
+
+def _is_row_of(row: dict, point: tuple[str, float, str, int]) -> bool:
+    """Whether ``row`` is the row of ``point`` (not of another that a file name was given to)."""
+    model, duration, method, n = point
+    try:
+        return (row["model"], row["method"], int(row["n_steps"])) == (model, method, int(n)) and float(
+            row["duration"]
+        ) == float(duration)
+    except (TypeError, ValueError):
+        return False
 
 
 def _typed(row: dict) -> dict:
