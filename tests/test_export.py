@@ -276,7 +276,7 @@ def test_exported_sensitivities_in_forward_and_reverse_mode(exports):
     assert len(list(exports.glob("*.jaxexport"))) == 3
 
     def effort(goal, m):  # as notebook 03: from the solution, at a tighter tolerance
-        return lc.solve(task.with_options(goal=goal, system=lj.Car(m=m)), sol.params, tol=1e-10).cost
+        return lc.solve(task.with_options(goal=goal, system=lj.Car(m=m)), sol, tol=1e-10).cost
 
     with compiled_programs("trace") as traced, compiled_programs() as compiled:
         grad = jax.grad(effort, argnums=(0, 1))(task.goal, 1.0)  # the mass a Python number

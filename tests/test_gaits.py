@@ -80,9 +80,11 @@ def test_drive_gait_sensitivities_match_finite_differences_of_resolves(drive):
     """d(displacement per cycle)/d(torque bound, mass, period) by the implicit function theorem
     against central differences of re-solves (rtol 1e-5), in reverse mode and in forward mode
     (a ``jax.jvp`` with respect to the model or the period once raised: the solution's
-    model-error diagnostic rolled out through the failure mask's custom VJP)."""
+    model-error diagnostic rolled out through the failure mask's custom VJP). The re-solves start
+    from the Solution (a warm start with a small barrier) and stay at its optimum: from its
+    params alone, at the gaits' default barrier, they ended at another one, 8.5e-5 m lower."""
     task, sol = drive
-    p0 = sol.params
+    p0 = sol
 
     def distance(bound, m, period):
         b = task.bounds
@@ -91,9 +93,16 @@ def test_drive_gait_sensitivities_match_finite_differences_of_resolves(drive):
             task,
             (b.u_lower.at[0].set(-bound), b.u_upper.at[0].set(bound), m, period, period),
         )
-        return -lc.solve(t, p0, tol=1e-11).cost
+        return -lc.solve(t, p0, tol=1e-10).cost
 
     b0, m0, t0 = jnp.asarray(0.1), jnp.asarray(float(task.system.m)), jnp.asarray(float(task.t_final))
+    # the same optimum, to the barrier's gap between tol 1e-8 and 1e-10 (2e-7)
+    assert abs(float(distance(b0, m0, t0)) + float(sol.cost)) < 1e-6
+    # a tol below what float64 resolves here (the KKT error stops near 1e-11): reported as stalled
+    # at an optimal point, not as a line search that found nothing (which suggested infeasibility)
+    tight = lc.solve(task, sol, tol=1e-14)
+    assert not bool(tight.converged) and tight.result == lc.SOLVER_RESULTS.stalled
+    assert float(tight.kkt_error) < 1e-8 and abs(float(tight.cost - sol.cost)) < 1e-6
     grad = jax.grad(distance, argnums=(0, 1, 2))(b0, m0, t0)
     forward = jax.jacfwd(distance, argnums=(0, 1, 2))(b0, m0, t0)
     np.testing.assert_allclose(np.asarray(forward), np.asarray(grad), rtol=1e-9)
@@ -104,6 +113,26 @@ def test_drive_gait_sensitivities_match_finite_differences_of_resolves(drive):
         args[i] = x - eps
         down = float(distance(*args))
         np.testing.assert_allclose(float(grad[i]), (up - down) / (2 * eps), rtol=1e-5)
+
+
+def test_a_singular_steering_bound_and_a_failed_period_are_named():
+    """A snakeboard steering bound reaching |phi| = pi/2 is refused (the solver's iterates reached
+    the singularity and it failed with a message about the Hessian); a start whose period fails
+    (here at cos(phi) = 0) makes monodromy and replay_gait raise naming the rollout's result, not
+    return NaNs or LAPACK's error on them."""
+    for make in (lc.drive_gait, lc.turn_gait, lc.reach):
+        with pytest.raises(ValueError, match="'max_steer'.*pi/2"):
+            make(max_steer=2.0)
+    with pytest.raises(ValueError, match="'max_steer'"):
+        lc.drive_gait(max_steer=(-1.0, 1.6))
+    task = lc.drive_gait(n_steps=10)
+    p = task.init()
+    singular = lc.GaitParams(p.controls, jnp.asarray(p.state).at[0].set(0.5 * np.pi))  # phi at pi/2
+    for analysis in (lc.monodromy, lambda t, q: lc.replay_gait(t, q, cycles=1)):
+        with pytest.raises(ValueError, match="singular configuration"):
+            analysis(task, singular)
+    with pytest.raises(ValueError, match="'M'"):
+        lc.floquet(np.full((2, 2), np.nan))
 
 
 def test_gait_bad_inputs_are_clear():

@@ -139,10 +139,24 @@ def monodromy(task: Task, params) -> tuple[Array, Array]:
 
     Raises:
         TypeError, ValueError: a task that is not periodic, ``params`` that are not its
-            :class:`GaitParams` (a :class:`~ldap_jax.control.Solution` counts as its ``params``).
+            :class:`GaitParams` (a :class:`~ldap_jax.control.Solution` counts as its ``params``);
+            on known values, a period whose rollout fails (e.g. the snakeboard at ``cos(phi) = 0``).
     """
-    z0, _, _, M, _, _ = _analysis(task, gait_params(task, params, "monodromy"))
+    params = gait_params(task, params, "monodromy")
+    z0, z1, _, M, _, _ = _analysis(task, params)
+    _check_finite("monodromy", task, params, z1, M)
     return z0, M
+
+
+def _check_finite(where: str, task: Task, params, z1, M) -> None:
+    """On known values, a ``ValueError`` for a cycle whose rollout failed (its end state or its
+    monodromy not finite) instead of NaNs returned or LAPACK's error on them."""
+    if is_concrete((z1, M)) and not all(np.all(np.isfinite(np.asarray(x))) for x in (z1, M)):
+        result = task.rollout(params).result
+        raise ValueError(
+            f"{where}: the period's rollout from the gait's start failed ({RESULTS[result]}), so the "
+            "cycle map and its monodromy are not finite: this start is not a periodic orbit of the model"
+        )
 
 
 def floquet(M: np.ndarray, *, cluster: float = 1e-3, rank_tol: float = 1e-7) -> dict:
@@ -159,6 +173,8 @@ def floquet(M: np.ndarray, *, cluster: float = 1e-3, rank_tol: float = 1e-7) -> 
     (the power of the cycle count by which an error grows: the largest block size minus 1).
     """
     M = np.asarray(M, float)
+    if not np.all(np.isfinite(M)):
+        raise ValueError("floquet: 'M' has non-finite entries (the cycle's rollout failed?)")
     n = M.shape[0]
     lam = np.linalg.eigvals(M)
     near = np.abs(lam - 1.0) < cluster
@@ -221,7 +237,7 @@ def replay_gait(
 
     Raises:
         TypeError, ValueError: a task that is not periodic, ``params`` that are not its
-            :class:`GaitParams`; ``cycles`` not a positive integer.
+            :class:`GaitParams`; ``cycles`` not a positive integer; a period whose rollout fails.
     """
     known = isinstance(cycles, jax.Array) and is_concrete(cycles)
     if known and cycles.ndim == 0 and cycles.dtype.kind in "iu":  # a concrete JAX integer
@@ -231,6 +247,7 @@ def replay_gait(
     cycles = int(cycles)
     params = gait_params(task, params, "replay_gait")
     z0, z1, g1, M, q0, qdot0 = _analysis(task, params)
+    _check_finite("replay_gait", task, params, z1, M)
     z0, z1, g1, M = (np.asarray(x) for x in (z0, z1, g1, M))
     n = task.n_steps
     ts = np.linspace(0.0, cycles * float(task.t_final), cycles * n + 1)

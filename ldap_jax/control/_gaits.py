@@ -32,7 +32,7 @@ from ._build import make_task
 from ._constraints import AbstractConstraint, Bounds, InitialRest, NetDisplacement, Periodic, per_channel
 from ._parameterizations import SampledControls
 from ._task import Guess, Task
-from ._tasks import car_effort_scale, model_of
+from ._tasks import car_effort_scale, model_of, snakeboard_steer
 from ._terms import AbstractTerm, Displacement, Effort, Rotation
 
 __all__ = ["make_gait", "drive_gait", "turn_gait", "sideways_gait", "racer_gait"]
@@ -130,8 +130,9 @@ def make_gait(
     )
 
 
-def _torque_bounds(sb: Snakeboard, max_torque, max_steer) -> Bounds:
-    return Bounds.of(sb, q={"phi": max_steer}, u=per_channel("max_torque", sb.control_names, max_torque))
+def _torque_bounds(sb: Snakeboard, max_torque, max_steer, where: str) -> Bounds:
+    phi = snakeboard_steer(max_steer, where)
+    return Bounds.of(sb, q={"phi": phi}, u=per_channel("max_torque", sb.control_names, max_torque))
 
 
 def _drive_guess(n_steps: int) -> np.ndarray:
@@ -158,8 +159,10 @@ def drive_gait(
     Args:
         system: default ``lj.Snakeboard()``.
         period: T (s, default pi). n_steps: nodes per period (default 100).
-        max_torque: bounds of the rotor and steering torques (N m, default 0.1 each; a number
-            ``b`` per channel means ``[-b, b]``, a pair ``(lo, hi)`` an asymmetric bound).
+        max_torque: bounds of the rotor and steering torques (N m, default 0.1 each): one
+            number ``b`` for both (``[-b, b]``), or one entry per channel, ``(rotor, steering)``,
+            each a number or a pair ``(lo, hi)``; so ``(0.05, 0.2)`` means ``|f_psi| <= 0.05``
+            and ``|f_phi| <= 0.2``, and an asymmetric rotor bound is ``((-0.05, 0.1), 0.1)``.
         max_steer: bound of the steering angle ``phi`` (rad, default 1; or ``(lo, hi)``).
         integrator: default ``lj.RDP(order=4)``.
     """
@@ -171,7 +174,7 @@ def drive_gait(
         objective=(Displacement((1.0, 0.0)),),
         constraints=(InitialRest((0, 2)), NetDisplacement(dtheta=0.0)),
         cyclic=("psi",),
-        bounds=_torque_bounds(sb, max_torque, max_steer),
+        bounds=_torque_bounds(sb, max_torque, max_steer, "drive_gait"),
         integrator=integrator,
         guess=Guess(controls=_drive_guess(_steps(n_steps))),
         name="drive_gait",
@@ -213,7 +216,7 @@ def turn_gait(
         objective=(Rotation(),),
         constraints=(InitialRest((0, 2)), NetDisplacement(dx=0.0, dy=0.0)),
         cyclic=("psi",),
-        bounds=_torque_bounds(sb, max_torque, max_steer),
+        bounds=_torque_bounds(sb, max_torque, max_steer, "turn_gait"),
         integrator=integrator,
         guess=Guess(amplitude=1.0, starts=check_positive_int("starts", starts)),
         name="turn_gait",

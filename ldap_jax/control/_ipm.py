@@ -383,6 +383,12 @@ def ipm_solve(
         done = ~ended & (e0 <= tol)
         stop = ended | done
         stepped = _iterate(fns, st, d, parts, b, options, tol)
+        # no acceptable step at a point within round-off of optimal (the KKT error within 100 tol,
+        # or below the default tol: 1e-8 in float64, 1e-5 in float32): stalled, not a search failure
+        near = jnp.maximum(100 * tol, 1e-5 if tol.dtype == jnp.float32 else 1e-8)
+        stalled = (stepped.result == SOLVER_RESULTS.line_search_failed) & (e0 <= near) & (parts[1] <= near)
+        result = SOLVER_RESULTS.where(stalled, SOLVER_RESULTS.stalled, stepped.result)
+        stepped = stepped._replace(result=result)
         st = jax.tree_util.tree_map(lambda a, c: jnp.where(stop, a, c), st, stepped)
         st = st._replace(error=e0, violation=parts[1], stopped=stop)
         return st._replace(result=SOLVER_RESULTS.where(done, SOLVER_RESULTS.successful, st.result))

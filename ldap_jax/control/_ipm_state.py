@@ -34,6 +34,12 @@ class SOLVER_RESULTS(eqx.Enumeration):
         "not strictly inside the bounds, a goal that is not finite or lies outside them, a non-finite "
         "displacement per cycle); build the task from known values to get the error naming the argument"
     )
+    stalled = (
+        "the KKT error stalled above the tolerance at a point that meets the constraints: round-off "
+        "leaves the line search no acceptable step (a tol below what the float type resolves on this "
+        "problem; sol.kkt_error is within 100 tol, or below the default tol); the point is optimal to "
+        "sol.kkt_error: solve again with a larger tol"
+    )
 
 
 class IPMOptions(NamedTuple):

@@ -166,7 +166,7 @@ def forward_gait(
         q0=np.zeros(5),
         qdot0=np.zeros(5),
         objective=(Forward(),),
-        bounds=Bounds.of(sb, q={"phi": max_steer}, u=torques, weight=1e4),
+        bounds=Bounds.of(sb, q={"phi": snakeboard_steer(max_steer, "forward_gait")}, u=torques, weight=1e4),
         controls=SinusoidGait(
             np.asarray(list(torques.values()), float), n_terms=n_terms, frequency=frequency
         ),
@@ -175,6 +175,24 @@ def forward_gait(
         name="forward_gait",
         checkpoint=checkpoint,
     )
+
+
+def snakeboard_steer(max_steer, where: str):
+    """``max_steer`` checked for a snakeboard task: its bound ``|phi| <= max_steer`` (or the
+    interval ``(lo, hi)``) must lie inside ``(-pi/2, pi/2)``, where ``cos(phi) != 0``; at
+    ``phi = +-pi/2`` the snakeboard's equations are singular, and a solve whose iterates reach it
+    fails with a message about the Hessian."""
+    try:
+        value = np.asarray(max_steer, float)
+    except (TypeError, ValueError):
+        return max_steer  # not numeric (or traced): Bounds.of names it
+    lo, hi = (-value, value) if value.ndim == 0 else (value if value.shape == (2,) else (None, None))
+    if lo is not None and not (-0.5 * np.pi < lo and hi < 0.5 * np.pi):
+        raise ValueError(
+            f"{where}: 'max_steer' must keep the steering angle inside (-pi/2, pi/2), where "
+            f"cos(phi) != 0 (the snakeboard's equations are singular at |phi| = pi/2), got {max_steer!r}"
+        )
+    return max_steer
 
 
 def reach(
@@ -207,7 +225,7 @@ def reach(
         qdot0=np.zeros(5),
         objective=(Effort(scale),),
         constraints=(TerminalPose(np.asarray(goal, float), 10.0, 10.0), TerminalRest((2,), 10.0)),
-        bounds=Bounds.of(sb, q={"phi": max_steer}, u=torques),
+        bounds=Bounds.of(sb, q={"phi": snakeboard_steer(max_steer, "reach")}, u=torques),
         controls=SampledControls(t_final, n_steps, scale),
         integrator=integrator,
         guess=Guess(amplitude=0.9, gait=SinusoidGait(scale, n_terms=1, frequency=frequency)),
