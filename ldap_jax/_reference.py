@@ -45,7 +45,8 @@ class Solution(eqx.Module):
         qdot: velocities (m/s, rad/s), (T, d). NaN likewise.
         result: a :class:`~ldap_jax.RESULTS` item: ``successful``; ``nonfinite`` (the state or
             the vector field turned non-finite, or the step size collapsed); ``singular`` (the
-            system's ``singularity``, e.g. the snakeboard's ``cos(phi)``, changed sign);
+            system's ``singularity``, e.g. the snakeboard's ``cos(phi)``, changed sign, or the
+            start is at it, within ``eps^(1/4)``);
             ``max_steps_reached``; ``invalid_input`` (a traced input failed its check).
         num_steps: accepted + rejected steps taken by the adaptive solver.
     """
@@ -306,7 +307,9 @@ def _reference(system, q0, qdot0, controls, ts, t0, rtol, atol, solver, max_step
             ),
         ),
     )
-    result = RESULTS.where(valid, result, RESULTS.invalid_input)
+    # a start at the singularity (valid otherwise) is reported as that, with every sample NaN
+    at_start = (initial == RESULTS.singular) & ok_ts & jnp.all(jnp.isfinite(c0))
+    result = RESULTS.where(valid, result, RESULTS.where(at_start, RESULTS.singular, RESULTS.invalid_input))
     # samples the solve did not reach (diffrax fills them with inf) are NaN, as in simulate
     row_ok = valid & jnp.all(jnp.isfinite(q), axis=1) & jnp.all(jnp.isfinite(qdot), axis=1)
     mask = jnp.where(row_ok, 1.0, jnp.nan).astype(dtype)[:, None]

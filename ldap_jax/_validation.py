@@ -330,7 +330,9 @@ def input_result(
     leaf) passing their ``value_checks``, the system's parameter checks, ``alpha`` in [0, 1] (and
     ``alpha = 1/2`` for a composition, ``RDP(order=4 | 6)``) and,
     with ``check_constraints``,
-    ``qdot0`` on the constraints. ``t_final=None`` skips the time check."""
+    ``qdot0`` on the constraints. ``t_final=None`` skips the time check. Valid inputs whose
+    start is at the system's singularity (``|singularity(q0)| < eps^(1/4)``, the snakeboard within
+    1.2e-4 rad of ``|phi| = pi/2`` in float64) give ``singular``: the steps test only their ends."""
     ok = jnp.isfinite(t0)
     if t_final is not None:
         ok = ok & jnp.isfinite(t_final) & (t_final > t0)
@@ -346,6 +348,10 @@ def input_result(
         ok = ok & (alpha >= 0) & (alpha <= 1)
         if getattr(integrator, "order", 2) > 2:  # a composition (RDP(order=4 | 6)) of symmetric steps
             ok = ok & (alpha == 0.5)
+    # a start at the singularity is that (what is derived there, e.g. a constraint residual, may
+    # not be finite)
+    singular = ok & system.singular(q0)
     if check_constraints:
         ok = ok & (_constraint_violation(system, q0, qdot0) <= constraint_tolerance(qdot0))
-    return RESULTS.where(ok, RESULTS.successful, RESULTS.invalid_input)
+    valid = RESULTS.where(ok, RESULTS.successful, RESULTS.invalid_input)
+    return RESULTS.where(singular, RESULTS.singular, valid)

@@ -707,6 +707,43 @@ def test_gradient_through_a_first_step_failure_is_nan(name):
     assert np.all(np.isnan(np.asarray(batch(jnp.stack([AMP, AMP])))))
 
 
+def test_a_start_at_the_singularity_moving_away_is_singular():
+    """The snakeboard started at |phi| = pi/2 (or within eps^(1/4) of it) with the steering moving
+    away: the steps test their ends only, which are clear of it, and every integrator and the
+    reference reported success. The start is tested too: singular, eagerly, under jit and vmap."""
+    sb = lj.Snakeboard(m=1.0, l=0.5, I=0.05, J=0.02)
+    qdot0 = jnp.zeros(5).at[4].set(-0.5)
+    for phi0 in (np.pi / 2, np.pi / 2 - 1e-5, -np.pi / 2 + 1e-6):
+        q0 = Z5.at[4].set(phi0)
+        for integrator in (lj.RDP(), lj.RDP(order=4), lj.RK4()):
+
+            def run(q, integrator=integrator):
+                return lj.simulate(sb, q, qdot0, None, t_final=1.0, n_steps=10, integrator=integrator).result
+
+            assert run(q0) == R.singular and jax.jit(run)(q0) == R.singular, (phi0, integrator)
+            codes = jax.vmap(run)(jnp.stack([Z5, q0]))
+            assert np.asarray(codes._value).tolist() == [code(R.successful), code(R.singular)]
+        ref = lj.reference(sb, q0, qdot0, None, jnp.linspace(0.0, 1.0, 3))
+        assert ref.result == R.singular, phi0
+
+
+def test_rk4_stages_past_the_singularity_are_singular():
+    """The steering phi(t) = c + b sin(w t + p) peaks 0.02 rad past pi/2 halfway between two steps'
+    ends (h = 0.5 s): the ends keep cos(phi) > 0, but RK4 evaluates the equations at its stages
+    past the singularity. It reported success; the stages are tested now, as the reference's
+    event is (13 of 27 such maneuvers were missed)."""
+    sb = lj.Snakeboard(m=1.0, l=0.5, I=0.05, J=0.02)
+    w, b, h = 2 * np.pi / 3, 0.3, 0.5
+    p = np.pi / 2 - w * 0.5 * h
+    ctl = lj.Sinusoids([[0.0], [-2 * 0.02 * b * w**2]], [[1.0], [w]], [[0.0], [p]])
+    q0 = Z5.at[4].set(np.pi / 2 + 0.02 - b + b * np.sin(p))
+    qdot0 = jnp.zeros(5).at[4].set(b * w * np.cos(p))
+    assert lj.reference(sb, q0, qdot0, ctl, jnp.linspace(0.0, 12.0, 25)).result == R.singular
+    traj = lj.simulate(sb, q0, qdot0, ctl, t_final=12.0, n_steps=24, integrator=lj.RK4())
+    phi = np.asarray(traj.q)[: int(traj.failure_index) + 1, 4]
+    assert traj.result == R.singular and np.all(np.cos(phi) > 0)  # every step's end clear of it
+
+
 @pytest.mark.xdist_group("faults_issue47")
 def test_gradient_through_a_first_step_failure_is_nan_for_times_and_parameters():
     """With respect to ``t_final`` (eagerly), and to a traced invalid mass under ``jit(grad)``."""

@@ -50,18 +50,26 @@ class AbstractRungeKutta(AbstractIntegrator):
         q, v = state
         tab = self.tableau
         ks = []
+        # the singularity at the step's end and at every stage the equations are evaluated at: a
+        # stage past it (e.g. cos(phi) < 0 between two steps' ends with cos(phi) > 0) is a failure
+        singular = None
         for i in range(len(tab.b)):
             yq, yv = q, v
             for j, aij in enumerate(tab.a[i][:i]):
                 if aij != 0.0:
                     yq = yq + (h * aij) * ks[j][0]
                     yv = yv + (h * aij) * ks[j][1]
+            if i > 0:
+                at_stage = system.singular(yq, q)
+                singular = at_stage if singular is None else singular | at_stage
             ks.append(system.ode((yq, yv), c[i]))
         dq = sum(bi * k[0] for bi, k in zip(tab.b, ks) if bi != 0.0)
         dv = sum(bi * k[1] for bi, k in zip(tab.b, ks) if bi != 0.0)
         new = (q + h * dq, v + h * dv)
         zero = jnp.zeros((), q.dtype)
-        result = classify(finite(new), system.singular(new[0], q), jnp.ones((), bool))
+        at_end = system.singular(new[0], q)
+        singular = at_end if singular is None else singular | at_end
+        result = classify(finite(new), singular, jnp.ones((), bool))
         return new, StepInfo(result=result, residual=zero, iterations=jnp.zeros((), jnp.int32))
 
 
