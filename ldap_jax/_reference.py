@@ -46,7 +46,8 @@ class Solution(eqx.Module):
         result: a :class:`~ldap_jax.RESULTS` item: ``successful``; ``nonfinite`` (the state or
             the vector field turned non-finite, or the step size collapsed); ``singular`` (the
             system's ``singularity``, e.g. the snakeboard's ``cos(phi)``, changed sign, or the
-            start is at it, within ``eps^(1/4)``);
+            start is at it, within ``eps^(1/4)``: then every sample is NaN, while
+            :func:`~ldap_jax.simulate` keeps its node 0);
             ``max_steps_reached``; ``invalid_input`` (a traced input failed its check).
         num_steps: accepted + rejected steps taken by the adaptive solver.
     """

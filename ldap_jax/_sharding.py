@@ -172,7 +172,8 @@ def shard_vmap(
     ``jax.vmap(fn)`` on its part: its loops run until its own members are done, not the whole
     batch's. The result equals ``jax.vmap(fn, in_axes)(*args)``, up to the round-off of another
     compiled program. The program compiles with :func:`ldap_jax.compiler_options`, and once per
-    argument structure and shapes (keep the returned function, as with ``jax.jit``). It is
+    argument structure and shapes (keep the returned function, as with ``jax.jit``; a batch the
+    devices do not divide compiles a second, small one that drops the padding). It is
     differentiable in both modes: the gradient with respect to an argument given once
     (``in_axes=None``) is summed over the devices.
 

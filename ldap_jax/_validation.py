@@ -330,9 +330,10 @@ def input_result(
     leaf) passing their ``value_checks``, the system's parameter checks, ``alpha`` in [0, 1] (and
     ``alpha = 1/2`` for a composition, ``RDP(order=4 | 6)``) and,
     with ``check_constraints``,
-    ``qdot0`` on the constraints. ``t_final=None`` skips the time check. Valid inputs whose
-    start is at the system's singularity (``|singularity(q0)| < eps^(1/4)``, the snakeboard within
-    1.2e-4 rad of ``|phi| = pi/2`` in float64) give ``singular``: the steps test only their ends."""
+    ``qdot0`` on the constraints. ``t_final=None`` skips the time check. Finite inputs whose start
+    is at the system's singularity (``|singularity(q0)| < eps^(1/4)``, the snakeboard within 1.2e-4
+    rad of ``|phi| = pi/2`` in float64) give ``singular`` whatever their constraint residual (which
+    may not be finite there): the steps test only their ends."""
     ok = jnp.isfinite(t0)
     if t_final is not None:
         ok = ok & jnp.isfinite(t_final) & (t_final > t0)

@@ -228,7 +228,10 @@ def launch(
     except _Terminated:
         return 128 + signal.SIGTERM
     finally:
+        # stopping: a second Ctrl-C or SIGTERM must not cut it short (the processes would be left)
+        ignored = _ignore_signals()
         _stop(procs, grace)
+        _restore(ignored)
         _on_sigterm(previous)
 
 
@@ -246,6 +249,18 @@ def _on_sigterm(handler):
     if handler is None or threading.current_thread() is not threading.main_thread():
         return None
     return signal.signal(signal.SIGTERM, handler)
+
+
+def _ignore_signals() -> dict:
+    """Ignore SIGINT and SIGTERM (main thread only); returns the handlers to restore."""
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+    return {sig: signal.signal(sig, signal.SIG_IGN) for sig in (signal.SIGINT, signal.SIGTERM)}
+
+
+def _restore(handlers: dict) -> None:
+    for sig, handler in handlers.items():
+        signal.signal(sig, handler)
 
 
 def _status(code: int) -> str:

@@ -251,15 +251,16 @@ def parse_args(argv=None):
             "argument --starts: multi-start applies to --solver optimize (lc.solve starts from one guess)"
         )
     args.error = parser.error
-    if args.process_id == 0 or not args.distributed:  # under --cluster: once process 0 is known
-        check_folders(args)
+    # --cache by every process (each keeps its programs there); --out by process 0, which writes
+    # it (under --cluster once JAX has told it its index)
+    check_folders(args, out=args.process_id == 0 or not args.distributed)
     return args
 
 
-def check_folders(args) -> None:
-    """Check (and create) ``--out`` and ``--cache``, in the process that writes them."""
-    for flag, path in (("--out", args.out), ("--cache", args.cache)):
-        if path is None:
+def check_folders(args, *, out: bool = True, cache: bool = True) -> None:
+    """Check (and create) ``--out`` and ``--cache`` (those asked for)."""
+    for flag, path, wanted in (("--out", args.out, out), ("--cache", args.cache, cache)):
+        if path is None or not wanted:
             continue
         if pathlib.Path(path).exists() and not pathlib.Path(path).is_dir():
             args.error(f"argument {flag}: {path!r} exists and is not a directory")
@@ -299,7 +300,7 @@ def solve_family(args) -> int:
     settings = {f"--{k.replace('_', '-')}": getattr(args, k) for k in keys}
     lead = launch.start(args, args.error, settings) == 0
     if lead and args.process_id is None:
-        check_folders(args)  # --cluster: this process is the one that writes
+        check_folders(args, cache=False)  # --cluster: this process is the one that writes --out
     kw = {} if args.n_steps is None else {"n_steps": args.n_steps}
     task = lc.TASKS[(args.model, args.task)](integrator=INTEGRATORS[args.integrator](), **kw)
     n_iter = 1000 if args.iterations is None else args.iterations

@@ -270,9 +270,12 @@ def test_launcher_stops_the_others_when_one_fails(tmp_path, capfd):
 
 def test_launcher_stops_its_processes_on_sigterm(tmp_path):
     """A supervisor's SIGTERM to the launcher stops its processes too (status 128 + 15), as Ctrl-C
-    does: they do not run on, orphaned, writing the run's files after it has "stopped"."""
+    does: they do not run on, orphaned, writing the run's files after it has "stopped". Processes
+    that ignore SIGTERM are killed after the grace period, even if a second SIGTERM arrives
+    while the launcher stops them (it cut the stopping short, leaving them running)."""
     child = (
-        "import os, sys, time, pathlib\n"
+        "import os, signal, sys, time, pathlib\n"
+        "signal.signal(signal.SIGTERM, signal.SIG_IGN)\n"
         "i = sys.argv[sys.argv.index('--process-id') + 1]\n"
         f"pathlib.Path(r'{tmp_path}', 'pid' + i).write_text(str(os.getpid()))\n"
         "time.sleep(60)\n"
@@ -286,6 +289,8 @@ def test_launcher_stops_its_processes_on_sigterm(tmp_path):
         pids = [int(f.read_text()) for f in tmp_path.glob("pid*") if f.read_text()]
         assert len(pids) == 2
         time.sleep(0.2)  # the pid files are written before the children's sleep
+        proc.terminate()
+        time.sleep(0.5)
         proc.terminate()
         err = proc.communicate(timeout=20)[1]
         assert proc.returncode == 128 + 15, err
