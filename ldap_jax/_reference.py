@@ -260,8 +260,13 @@ def _reference(system, q0, qdot0, controls, ts, t0, rtol, atol, solver, max_step
     t_end = jnp.where(valid, ts[-1], t0)
     ts_safe = jnp.where(valid, ts, t0)
 
+    # a kinematic coordinate's prescribed acceleration (the controls' derivative) enters the
+    # dynamics where it is coupled to the others (a System's steered, inert front wheel, say)
+    kinematic = len(system.kinematic_index) > 0
+
     def vector_field(t, y, args):
-        return system.ode(y, jnp.where(valid, controls(t), 0.0))
+        c_dot = jnp.where(valid, controls.derivative(t), 0.0) if kinematic else None
+        return system.ode(y, jnp.where(valid, controls(t), 0.0), c_dot)
 
     def nonfinite(t, y, args, **kwargs):
         return ~(jnp.all(jnp.isfinite(y[0])) & jnp.all(jnp.isfinite(y[1])))

@@ -33,6 +33,7 @@ from ._numerics import SAVED, materialise_result, saved
 from ._results import RESULTS, first_failure
 from .integrators import AbstractIntegrator
 from .systems import AbstractSystem, Observation
+from .systems._base import body_velocity
 
 __all__ = ["rollout", "RolloutOutput", "check_checkpoint", "check_save", "SavePlan"]
 
@@ -124,6 +125,17 @@ class _Carry(NamedTuple):
     result: RESULTS
     failure_index: Array
     c_node: tuple[Array, ...] | None  # the controls at the node (the next step's start), when carried
+    # with friction and the divergence test: the friction's work since t0 and its power at the node
+    friction_work: Array | None = None
+    friction_power: Array | None = None
+
+
+def _friction_power(system: AbstractSystem, obs: Observation) -> Array:
+    """The power of a system's friction forces at a node: ``<f_r, u> + <F, xi>`` (W, <= 0)."""
+    u = obs.qdot[3:]
+    xi = body_velocity(obs.q, obs.qdot)
+    f_r, force = system.dissipative_forces(obs.q[3:], u, xi)
+    return jnp.dot(f_r, u) + jnp.dot(force, xi)
 
 
 def _where(mask, a, b):
@@ -344,6 +356,9 @@ def rollout(
     energy_scale0 = jnp.abs(obs0.energy)
     zero = jnp.zeros((), dtype)
     check_divergence = diagnostics and divergence is not None
+    # friction's work enters the energy balance of the divergence test (E - E0 = W + W_friction):
+    # left out, the energy it dissipates grew past the test's bound in long healthy runs
+    friction = check_divergence and system.has_friction
     n_s = system.n_shape
     impulse0 = jnp.zeros((4, n_s), dtype)
     static_forcing = None  # the forcing scale, when the controls know their impulse
@@ -396,6 +411,7 @@ def rollout(
         new_state, info = _tracing.step(integrator, system, h, state_in, c_stage)
         step_result = info.result
         obs, work, abs_work, impulse = carry.obs, carry.work, carry.abs_work, carry.impulse
+        friction_work, p_f = carry.friction_work, carry.friction_power
         if observe:
             if policy:
                 obs_new = _tracing.observe(integrator, system, new_state, c_stage[-1])
@@ -414,7 +430,12 @@ def rollout(
                     (step_result == RESULTS.successful) & ~ok_diag, RESULTS.nonfinite, step_result
                 )
                 if check_divergence:
-                    balance = jnp.abs(obs_new.energy - obs0.energy - work)
+                    lost = 0.0
+                    if friction:
+                        p_f = _friction_power(system, obs_new)
+                        friction_work = carry.friction_work + 0.5 * h * (carry.friction_power + p_f)
+                        lost = friction_work
+                    balance = jnp.abs(obs_new.energy - obs0.energy - work - lost)
                     # the scale of the work: the absolute work so far, but no more than the
                     # energy the forces' impulse can give the system at rest at q0 (the absolute
                     # work of a diverging run grows with its divergence: the test never fired)
@@ -447,7 +468,15 @@ def rollout(
             emitted = obs
         else:
             obs_carry = emitted = _where(keep, obs, carry.obs)
+        if friction:
+            fric = dict(
+                friction_work=jnp.where(keep, friction_work, carry.friction_work),
+                friction_power=jnp.where(keep, p_f, carry.friction_power),
+            )
+        else:
+            fric = {}
         new = _Carry(
+            **fric,
             state=advance(keep, new_state, carry.state),
             obs=obs_carry,
             work=jnp.where(keep, work, carry.work),
@@ -499,6 +528,8 @@ def rollout(
         return emit(carry, carry.obs)
 
     carry0 = _Carry(
+        friction_work=zero if friction else None,
+        friction_power=_friction_power(system, obs0) if friction else None,
         state=state0,
         obs=obs0,
         work=zero,

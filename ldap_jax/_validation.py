@@ -248,12 +248,10 @@ def _warn_if_samples_miss_the_run(controls, t0, t_final) -> None:
 
 
 def _has_both_views(system) -> bool:
-    """A user :class:`~ldap_jax.System` given both its constraints (the full view) and its symmetry
-    basis: the two descriptions must agree."""
-    return (
-        getattr(system, "constraints_fn", None) is not None
-        and getattr(system, "symmetry_basis_fn", None) is not None
-    )
+    """A user :class:`~ldap_jax.System` given its constraints (the full view) besides its
+    connection (and symmetry basis, if any: ``c = 0`` without one): the two descriptions must
+    agree."""
+    return getattr(system, "constraints_fn", None) is not None
 
 
 @eqx.filter_jit

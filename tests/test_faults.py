@@ -1528,6 +1528,20 @@ def test_a_system_whose_constraints_contradict_its_symmetry_basis_is_refused():
         lj.simulate(bad, jnp.zeros(3), jnp.zeros(3), None, t_final=1.0, n_steps=4, diagnostics=False)
     good = lj.simulate(sleigh, jnp.zeros(3), jnp.array([1.0, 0.0, 0.1]), None, t_final=1.0, n_steps=4)
     assert good.result == R.successful
+    # without a symmetry basis (c = 0, the car's case) the connection is checked against the
+    # constraints too (a sign flipped in it ran 'successful' with a constraint residual of 2.8)
+    lag = lambda r, u, xi: 0.5 * (u[0] ** 2 + u[1] ** 2 + xi[0] ** 2 + xi[1] ** 2 + xi[2] ** 2)  # noqa: E731
+    conn = jnp.array([[0.2, -0.2], [0.5, 0.5], [0.0, 0.0]])
+    cons = lambda sign: lambda r: jnp.concatenate([jnp.eye(3), sign * conn], axis=1)  # noqa: E731
+    drive = functools.partial(lj.System, 2, lag, lambda r: conn)
+    for sign, ok in ((1.0, True), (-1.0, False)):
+        system = drive(constraints=cons(sign))
+        run = functools.partial(lj.simulate, system, jnp.zeros(5), jnp.zeros(5), None, t_final=1.0, n_steps=4)
+        if ok:
+            assert run().result == R.successful
+        else:
+            with pytest.raises(ValueError, match="'system': its constraints C\\(r\\)"):
+                run()
 
 
 #: every construction-time case: the control API's, then the others'

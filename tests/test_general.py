@@ -292,3 +292,51 @@ def test_inconsistent_shapes_name_the_function():
         lj.roller_racer(d1=0.4, d2=0.4)
     with pytest.raises(ValueError, match="'a'"):
         lj.chaplygin_sleigh(a=-1.0)
+
+
+def test_a_kinematic_coordinates_acceleration_enters_the_reference_and_rk4():
+    """A sleigh whose front wheel (with inertia) is steered at a prescribed rate: the steering's
+    acceleration enters the other equations. lj.reference took it as zero and ended 0.4 m off
+    (reporting success), RK4 converged to that (order 0). Now the reference agrees with
+    RDP(order=6), which needs no acceleration (a different, discrete route), and RK4 converges
+    to it at order 4."""
+    m, inertia, a, b, mf, length, jf, k = 1.0, 0.15, 0.4, 0.05, 0.3, 0.8, 0.04, 0.5
+
+    def lagrangian(r, u, xi):
+        om, vx, vy = xi
+        kinetic = m * ((vx - om * b) ** 2 + (vy + om * a) ** 2) + inertia * om**2
+        kinetic = kinetic + mf * (vx**2 + (vy + om * length) ** 2) + jf * (om + u[0]) ** 2
+        return 0.5 * kinetic - 0.5 * k * r[0] ** 2
+
+    sleigh = lj.System(
+        1,
+        lagrangian,
+        lambda r: jnp.zeros((3, 1)),
+        lambda r: jnp.stack([jnp.sin(r[0]), length * jnp.cos(r[0]), 0.0 * r[0]])[:, None],
+        lambda r: jnp.array(
+            [[0.0, 0.0, 1.0, 0.0], [length * jnp.cos(r[0]), -jnp.sin(r[0]), jnp.cos(r[0]), 0.0]]
+        ),
+        kinematic=(True,),
+    )
+    ctl = lj.Sinusoids(amplitude=[[0.6]], frequency=[[1.5]], phase=[[0.3]])
+    q0 = jnp.array([0.0, 0.0, 0.1, 0.2])
+    qdot0 = jnp.array([np.cos(0.1), np.sin(0.1), np.tan(0.2) / length, 0.6 * np.sin(0.3)])
+    ref = lj.reference(sleigh, q0, qdot0, ctl, jnp.array([0.0, 10.0])).q[-1]
+    rdp6 = lj.simulate(
+        sleigh, q0, qdot0, ctl, t_final=10.0, n_steps=160, integrator=lj.RDP(order=6), save="final"
+    )
+    np.testing.assert_allclose(np.asarray(rdp6.q[-1]), np.asarray(ref), atol=1e-8)
+    errors = [
+        float(
+            jnp.max(
+                jnp.abs(
+                    lj.simulate(
+                        sleigh, q0, qdot0, ctl, t_final=10.0, n_steps=n, integrator=lj.RK4(), save="final"
+                    ).q[-1]
+                    - ref
+                )
+            )
+        )
+        for n in (200, 400)
+    ]
+    assert 3.5 < np.log2(errors[0] / errors[1]) < 4.5, errors

@@ -251,8 +251,11 @@ class AbstractSystem(eqx.Module):
         """Inverse of :meth:`qdot_from_velocities` on the constraint distribution."""
 
     @abc.abstractmethod
-    def velocity_dynamics(self, q: Array, v: Array, f: Array, u_kin: Array) -> Array:
-        """``vdot`` from the Lagrange-d'Alembert equations."""
+    def velocity_dynamics(
+        self, q: Array, v: Array, f: Array, u_kin: Array, u_kin_dot: Array | None = None
+    ) -> Array:
+        """``vdot`` from the Lagrange-d'Alembert equations; ``u_kin_dot``: the prescribed
+        accelerations of the kinematic coordinates (default ``None``: zero), where they enter."""
 
     @property
     def has_friction(self) -> bool:
@@ -448,11 +451,19 @@ class AbstractSystem(eqx.Module):
         sol = solve(kkt, rhs)
         return sol[:d], sol[d:]
 
-    def ode(self, y: tuple[Array, Array], controls: Array) -> tuple[Array, Array]:
-        """Right-hand side of the minimal continuous equations, ``y = (q, v)``."""
+    def ode(
+        self, y: tuple[Array, Array], controls: Array, controls_dot: Array | None = None
+    ) -> tuple[Array, Array]:
+        """Right-hand side of the minimal continuous equations, ``y = (q, v)``, with the
+        controls' values and (default ``None``: taken as zero) their time derivative, whose
+        kinematic channels are the prescribed coordinates' accelerations."""
         q, v = y
         f, u_kin = self.inputs(controls)
-        return self.qdot_from_velocities(q, v, u_kin), self.velocity_dynamics(q, v, f, u_kin)
+        if controls_dot is None or not len(self.kinematic_index):
+            vdot = self.velocity_dynamics(q, v, f, u_kin)
+        else:
+            vdot = self.velocity_dynamics(q, v, f, u_kin, self.inputs(controls_dot)[1])
+        return self.qdot_from_velocities(q, v, u_kin), vdot
 
     def consistent_qdot(self, q: Array, qdot: Array, controls: Array) -> Array:
         """``qdot`` with its kinematic shape entries replaced by the prescribed velocities."""

@@ -102,7 +102,8 @@ class Car(AbstractClosedFormSystem):
         """``I + m rho^2 + K rho^2 sigma^2 / l^2`` (:meth:`_wheel_inertia` at ``sigma_a = sigma_k``)."""
         return self._wheel_inertia(sigma, sigma)
 
-    def velocity_dynamics(self, q, v, f, u_kin):
+    def velocity_dynamics(self, q, v, f, u_kin, u_kin_dot=None):
+        # the steering's acceleration does not enter the wheel's equation (sigma has no inertia)
         sigma = q[4]
         gyro = self.K * self.rho**2 * sigma * u_kin[1] * v[0] / self.l**2
         return ((f[0] - gyro) / self.effective_inertia(sigma))[None]

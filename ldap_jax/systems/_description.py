@@ -93,8 +93,9 @@ class System(AbstractSystem):
     Controls: one channel per shape coordinate, in order: a generalized force ``f_i`` on a
     force-driven coordinate, the prescribed velocity ``u_i`` of a kinematic one. (The continuous
     equations of a kinematic coordinate whose prescribed acceleration enters the dynamics use the
-    control's time derivative, which :func:`ldap_jax.reference` provides; the RK baselines sample
-    control values only and take it as zero.)
+    control's time derivative, which :func:`ldap_jax.reference` provides; the RK baselines
+    estimate it from their stage values, RK4 to ``O(h^2)``, RK2 to ``O(h)``, which makes RK2 of
+    order 1 there.)
 
     Raises:
         ValueError: at construction, when a function returns an array of the wrong shape (the

@@ -162,7 +162,7 @@ class Snakeboard(AbstractClosedFormSystem):
         s = jnp.sin(phi) * qdot[2] - jnp.cos(phi) * vx / self.l
         return jnp.stack([qdot[3], qdot[4], s])
 
-    def velocity_dynamics(self, q, v, f, u_kin):
+    def velocity_dynamics(self, q, v, f, u_kin, u_kin_dot=None):
         phi = q[4]
         psidot, phidot, s = v
         sp = jnp.sin(phi)
