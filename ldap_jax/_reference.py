@@ -45,8 +45,9 @@ class Solution(eqx.Module):
         qdot: velocities (m/s, rad/s), (T, d). NaN likewise.
         result: a :class:`~ldap_jax.RESULTS` item: ``successful``; ``nonfinite`` (the state or
             the vector field turned non-finite, or the step size collapsed); ``singular`` (the
-            system's ``singularity``, e.g. the snakeboard's ``cos(phi)``, changed sign, or the
-            start is at it, within ``eps^(1/4)``: then every sample is NaN, while
+            system's ``singularity``, e.g. the snakeboard's ``cos(phi)``, changed sign or fell
+            below ``eps^(1/4)`` in magnitude, as :func:`~ldap_jax.simulate`'s steps test it; at
+            the start: then every sample is NaN, while
             :func:`~ldap_jax.simulate` keeps its node 0);
             ``max_steps_reached``; ``invalid_input`` (a traced input failed its check).
         num_steps: accepted + rejected steps taken by the adaptive solver.
@@ -274,6 +275,13 @@ def _reference(system, q0, qdot0, controls, ts, t0, rtol, atol, solver, max_step
     def singularity(t, y, args, **kwargs):
         return system.singularity(y[0])
 
+    # as simulate's steps test it: a magnitude below eps^(1/4) is the singularity too (approached
+    # without a sign change, the adaptive steps shrink until max_steps)
+    threshold = jnp.finfo(dtype).eps ** 0.25
+
+    def near_singularity(t, y, args, **kwargs):
+        return jnp.abs(system.singularity(y[0])) < threshold
+
     # steps end on the control's kinks: across the kinks of sampled (piecewise-linear) controls,
     # Dopri8 at rtol = atol = 1e-11 left errors of 1e-9 to 1.2e-7 in the snakeboard's steering
     # angle on an optimised reach (depending on how XLA rounds), against 9e-14 stepping onto them
@@ -292,14 +300,15 @@ def _reference(system, q0, qdot0, controls, ts, t0, rtol, atol, solver, max_step
             saveat=diffrax.SaveAt(ts=ts_safe),
             stepsize_controller=controller,
             max_steps=max_steps,
-            event=diffrax.Event((nonfinite, singularity)),
+            event=diffrax.Event((nonfinite, singularity, near_singularity)),
             throw=False,
         )
     q, v = sol.ys
     u_kin = jax.vmap(lambda t: system.inputs(controls(t))[1])(ts)
     qdot = jax.vmap(system.qdot_from_velocities)(q, v, u_kin)
     d_res = diffrax.RESULTS
-    hit_nonfinite, hit_singular = sol.event_mask if sol.event_mask is not None else (False, False)
+    hit_nonfinite, crossed, near = sol.event_mask if sol.event_mask is not None else (False,) * 3
+    hit_singular = crossed | near
     result = RESULTS.where(
         sol.result == d_res.successful,
         RESULTS.successful,

@@ -182,3 +182,35 @@ def test_reference_reports_failures_and_bad_inputs():
         jnp.stack([jnp.zeros(5), jnp.array([0.0, 1.0, 0.0, 0.0, 0.0])])
     )
     np.testing.assert_array_equal(bad, [0, lj.RESULTS.invalid_input._value])
+
+
+def test_reference_reports_a_declared_singularity_it_approaches():
+    """A sleigh written with a symmetry basis that is unbounded at ``cos(phi) = 0`` (all of the
+    motion in ``v_x``, ``e = (tan(phi) / L, 1, 0)``), its ``singularity=`` declared: its steering
+    swings through pi/2. The adaptive steps shrank towards it without a sign change until
+    ``max_steps_reached`` ("loosen the tolerances"); the magnitude test simulate's steps use
+    (below ``eps^(1/4)``) reports ``singular``, as simulate does."""
+    m, inertia, a, b, mf, length, jf, k = 1.0, 0.15, 0.4, 0.05, 0.3, 0.8, 0.04, 0.5
+
+    def lagrangian(r, u, xi):
+        om, vx, vy = xi
+        kinetic = m * ((vx - om * b) ** 2 + (vy + om * a) ** 2) + inertia * om**2
+        kinetic = kinetic + mf * (vx**2 + (vy + om * length) ** 2) + jf * (om + u[0]) ** 2
+        return 0.5 * kinetic - 0.5 * k * r[0] ** 2
+
+    declared = lj.System(
+        1,
+        lagrangian,
+        lambda r: jnp.zeros((3, 1)),
+        lambda r: jnp.stack([jnp.tan(r[0]) / length, 1.0 + 0.0 * r[0], 0.0 * r[0]])[:, None],
+        lambda r: jnp.array(
+            [[0.0, 0.0, 1.0, 0.0], [length * jnp.cos(r[0]), -jnp.sin(r[0]), jnp.cos(r[0]), 0.0]]
+        ),
+        singularity=lambda r: jnp.cos(r[0]),
+    )
+    q0 = jnp.array([0.0, 0.0, 0.0, 1.2])
+    qdot0 = jnp.array([0.5, 0.0, float(np.tan(1.2)) * 0.5 / length, 8.0])
+    ref = lj.reference(declared, q0, qdot0, None, jnp.linspace(0.0, 1.0, 11))
+    assert ref.result == lj.RESULTS.singular, lj.RESULTS[ref.result]
+    run = lj.simulate(declared, q0, qdot0, None, t_final=1.0, n_steps=100)
+    assert run.result == lj.RESULTS.singular
