@@ -389,3 +389,36 @@ def on_grid(run: Run, n: int, grid: int = CONV_GRID) -> Run:
             )
         }
     )
+
+
+#: the steered sleigh's length from the rear knife edge to its steerable front wheel (m)
+STEERED_SLEIGH_LENGTH = 0.8
+
+
+def steered_sleigh(basis: str = "regular", **options) -> lj.System:
+    """A sleigh (rear knife edge, offset centre of mass) with a steerable front knife edge at
+    ``(L, 0)`` whose wheel has inertia and a steering spring: shape ``phi``. ``basis="regular"``:
+    ``e = (sin phi, L cos phi, 0)``; ``"tan"``: ``e = (tan(phi) / L, 1, 0)``, unbounded at
+    ``cos(phi) = 0``. ``options`` go to :class:`lj.System` (``kinematic=``, ``singularity=``)."""
+    m, inertia, a, b, mf, length, jf, k = 1.0, 0.15, 0.4, 0.05, 0.3, STEERED_SLEIGH_LENGTH, 0.04, 0.5
+
+    def lagrangian(r, u, xi):
+        om, vx, vy = xi
+        kinetic = m * ((vx - om * b) ** 2 + (vy + om * a) ** 2) + inertia * om**2
+        kinetic = kinetic + mf * (vx**2 + (vy + om * length) ** 2) + jf * (om + u[0]) ** 2
+        return 0.5 * kinetic - 0.5 * k * r[0] ** 2
+
+    bases = {
+        "regular": lambda r: jnp.stack([jnp.sin(r[0]), length * jnp.cos(r[0]), 0.0 * r[0]])[:, None],
+        "tan": lambda r: jnp.stack([jnp.tan(r[0]) / length, 1.0 + 0.0 * r[0], 0.0 * r[0]])[:, None],
+    }
+    return lj.System(
+        1,
+        lagrangian,
+        lambda r: jnp.zeros((3, 1)),
+        bases[basis],
+        lambda r: jnp.array(
+            [[0.0, 0.0, 1.0, 0.0], [length * jnp.cos(r[0]), -jnp.sin(r[0]), jnp.cos(r[0]), 0.0]]
+        ),
+        **options,
+    )

@@ -8,6 +8,7 @@ import pytest
 from helpers import (
     RACER,
     SLEIGH,
+    STEERED_SLEIGH_LENGTH,
     fitted_order,
     index,
     maneuvers,
@@ -16,6 +17,7 @@ from helpers import (
     simulate_over_alphas,
     sleigh_batch,
     sleigh_newton_run,
+    steered_sleigh,
     systems,
 )
 
@@ -300,24 +302,7 @@ def test_a_kinematic_coordinates_acceleration_enters_the_reference_and_rk4():
     (reporting success), RK4 converged to that (order 0). Now the reference agrees with
     RDP(order=6), which needs no acceleration (a different, discrete route), and RK4 converges
     to it at order 4."""
-    m, inertia, a, b, mf, length, jf, k = 1.0, 0.15, 0.4, 0.05, 0.3, 0.8, 0.04, 0.5
-
-    def lagrangian(r, u, xi):
-        om, vx, vy = xi
-        kinetic = m * ((vx - om * b) ** 2 + (vy + om * a) ** 2) + inertia * om**2
-        kinetic = kinetic + mf * (vx**2 + (vy + om * length) ** 2) + jf * (om + u[0]) ** 2
-        return 0.5 * kinetic - 0.5 * k * r[0] ** 2
-
-    sleigh = lj.System(
-        1,
-        lagrangian,
-        lambda r: jnp.zeros((3, 1)),
-        lambda r: jnp.stack([jnp.sin(r[0]), length * jnp.cos(r[0]), 0.0 * r[0]])[:, None],
-        lambda r: jnp.array(
-            [[0.0, 0.0, 1.0, 0.0], [length * jnp.cos(r[0]), -jnp.sin(r[0]), jnp.cos(r[0]), 0.0]]
-        ),
-        kinematic=(True,),
-    )
+    sleigh, length = steered_sleigh(kinematic=(True,)), STEERED_SLEIGH_LENGTH
     ctl = lj.Sinusoids(amplitude=[[0.6]], frequency=[[1.5]], phase=[[0.3]])
     q0 = jnp.array([0.0, 0.0, 0.1, 0.2])
     qdot0 = jnp.array([np.cos(0.1), np.sin(0.1), np.tan(0.2) / length, 0.6 * np.sin(0.3)])

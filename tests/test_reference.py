@@ -5,7 +5,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import compiled_programs, index, maneuvers, systems
+from helpers import STEERED_SLEIGH_LENGTH, compiled_programs, index, maneuvers, steered_sleigh, systems
 
 import ldap_jax as lj
 
@@ -190,24 +190,7 @@ def test_reference_reports_a_declared_singularity_it_approaches():
     swings through pi/2. The adaptive steps shrank towards it without a sign change until
     ``max_steps_reached`` ("loosen the tolerances"); the magnitude test simulate's steps use
     (below ``eps^(1/4)``) reports ``singular``, as simulate does."""
-    m, inertia, a, b, mf, length, jf, k = 1.0, 0.15, 0.4, 0.05, 0.3, 0.8, 0.04, 0.5
-
-    def lagrangian(r, u, xi):
-        om, vx, vy = xi
-        kinetic = m * ((vx - om * b) ** 2 + (vy + om * a) ** 2) + inertia * om**2
-        kinetic = kinetic + mf * (vx**2 + (vy + om * length) ** 2) + jf * (om + u[0]) ** 2
-        return 0.5 * kinetic - 0.5 * k * r[0] ** 2
-
-    declared = lj.System(
-        1,
-        lagrangian,
-        lambda r: jnp.zeros((3, 1)),
-        lambda r: jnp.stack([jnp.tan(r[0]) / length, 1.0 + 0.0 * r[0], 0.0 * r[0]])[:, None],
-        lambda r: jnp.array(
-            [[0.0, 0.0, 1.0, 0.0], [length * jnp.cos(r[0]), -jnp.sin(r[0]), jnp.cos(r[0]), 0.0]]
-        ),
-        singularity=lambda r: jnp.cos(r[0]),
-    )
+    declared, length = steered_sleigh("tan", singularity=lambda r: jnp.cos(r[0])), STEERED_SLEIGH_LENGTH
     q0 = jnp.array([0.0, 0.0, 0.0, 1.2])
     qdot0 = jnp.array([0.5, 0.0, float(np.tan(1.2)) * 0.5 / length, 8.0])
     ref = lj.reference(declared, q0, qdot0, None, jnp.linspace(0.0, 1.0, 11))
