@@ -206,7 +206,7 @@ def launch(
         for i in range(n)
     ]
     # a supervisor's SIGTERM stops the processes too, as Ctrl-C does (else they run on, orphaned)
-    previous = _on_sigterm(_terminate)
+    previous = _set_handlers({signal.SIGTERM: _terminate})
     try:
         while True:
             codes = [p.poll() for p in procs]
@@ -229,10 +229,9 @@ def launch(
         return 128 + signal.SIGTERM
     finally:
         # stopping: a second Ctrl-C or SIGTERM must not cut it short (the processes would be left)
-        ignored = _ignore_signals()
+        stopping = _set_handlers(dict.fromkeys((signal.SIGINT, signal.SIGTERM), signal.SIG_IGN))
         _stop(procs, grace)
-        _restore(ignored)
-        _on_sigterm(previous)
+        _set_handlers({**stopping, **previous})  # SIGINT's and SIGTERM's handlers from before
 
 
 class _Terminated(Exception):
@@ -243,24 +242,12 @@ def _terminate(signum, frame):
     raise _Terminated
 
 
-def _on_sigterm(handler):
-    """Install ``handler`` for SIGTERM (main thread only; elsewhere nothing changes) and return
-    the handler it replaces."""
-    if handler is None or threading.current_thread() is not threading.main_thread():
-        return None
-    return signal.signal(signal.SIGTERM, handler)
-
-
-def _ignore_signals() -> dict:
-    """Ignore SIGINT and SIGTERM (main thread only); returns the handlers to restore."""
+def _set_handlers(handlers: dict) -> dict:
+    """Install ``{signal: handler}`` (in the main thread only: elsewhere nothing changes) and
+    return the handlers they replace."""
     if threading.current_thread() is not threading.main_thread():
         return {}
-    return {sig: signal.signal(sig, signal.SIG_IGN) for sig in (signal.SIGINT, signal.SIGTERM)}
-
-
-def _restore(handlers: dict) -> None:
-    for sig, handler in handlers.items():
-        signal.signal(sig, handler)
+    return {sig: signal.signal(sig, handler) for sig, handler in handlers.items()}
 
 
 def _status(code: int) -> str:
