@@ -131,6 +131,13 @@ def check_problem(
             f"'controls' has {controls.n_channels} channels but {type(system).__name__} takes "
             f"{system.n_controls} {system.control_names}"
         )
+    if isinstance(controls, AbstractControls):  # a batch of controls must come through jax.vmap
+        shape = tuple(jax.eval_shape(controls, jax.ShapeDtypeStruct((), jnp.result_type(float))).shape)
+        if shape != (system.n_controls,):
+            raise ValueError(
+                f"'controls' gives values of shape {shape} at a time, expected ({system.n_controls},) "
+                f"for {type(system).__name__}; controls with a batch axis go through jax.vmap"
+            )
     d = system.n_config
     q0 = check_array("q0", q0, (d,), f"for {type(system).__name__}")
     qdot0 = check_array("qdot0", qdot0, (d,), f"for {type(system).__name__}")
@@ -186,7 +193,7 @@ def simulate(
             steering rates).
         t_final: end time (s), ``> t0``.
         n_steps: number of steps N (static: each new N compiles once). For compositions
-            (``RDP(order=4 | 6)``) the number of composed steps.
+            (``RDP(order=4 | 6 | 8)``) the number of composed steps.
         integrator: default ``RDP(alpha=0.5, retraction="exp")`` (order 2).
         t0: start time (s, default 0).
         save: which nodes to return: ``"all"`` (default; N + 1 nodes), ``"final"`` (the last node

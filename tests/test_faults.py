@@ -301,6 +301,12 @@ SIM_RAISES = {
     ),
     "controls not callable": (dict(controls=np.zeros(2)), TypeError, "'controls'"),
     "controls channels": (dict(controls=lj.Constant(jnp.zeros(3))), ValueError, "'controls'"),
+    # a batch of controls passed without jax.vmap: a broadcasting error deep inside before
+    "controls batched": (
+        dict(controls=lj.Constant(jnp.zeros((2, 2)))),
+        ValueError,
+        "'controls' gives values of shape \\(2, 2\\).*jax.vmap",
+    ),
     "policy output shape": (
         dict(controls=lj.Policy(lambda t, q, qd: jnp.zeros(3), 2)),
         ValueError,
@@ -383,6 +389,21 @@ CONSTRUCTOR_RAISES = {
     # integrators
     "RDP alpha>1": (lambda: lj.RDP(alpha=1.5), ValueError, "'alpha'"),
     "RDP alpha<0": (lambda: lj.RDP(alpha=-0.1), ValueError, "'alpha'"),
+    # order 1 is what alpha != 1/2 gives: asked for at alpha = 1/2 it ran the order-2 step
+    "RDP order 1 at alpha 1/2": (lambda: lj.RDP(order=1), ValueError, "'order' must be 2, 4, 6 or 8"),
+    # the maps act on one element: out-of-range indices were clamped by JAX, the value returned
+    "lie.exp shape": (lambda: lj.lie.exp(jnp.zeros(2)), ValueError, "lie.exp: 'v' must have shape \\(3,\\)"),
+    "lie.compose shape": (
+        lambda: lj.lie.compose(jnp.zeros(4), jnp.zeros(3)),
+        ValueError,
+        "lie.compose: 'g1'",
+    ),
+    "lie.vee shape": (lambda: lj.lie.vee(jnp.zeros(3)), ValueError, "lie.vee: 'xi_hat'"),
+    # any other string meant the Cayley map
+    "lie.retract name": (lambda: lj.lie.retract(jnp.zeros(3), "expo"), ValueError, "'retraction'"),
+    "lie.dtau_inv name": (lambda: lj.lie.dtau_inv(jnp.zeros(3), "EXP"), ValueError, "'retraction'"),
+    "lie.dtau_inv order 1.5": (lambda: lj.lie.dtau_inv(jnp.zeros(3), "exp", 1.5), ValueError, "'order'"),
+    "lie.dtau_inv order True": (lambda: lj.lie.dtau_inv(jnp.zeros(3), "exp", True), ValueError, "'order'"),
     "GNI alpha nan": (lambda: lj.GNI(alpha=NAN), ValueError, "'alpha'"),
     # controls
     "Sinusoids 1-d": (
@@ -497,6 +518,12 @@ REF_RAISES = {
     "system": (dict(system="snakeboard"), TypeError, "'system'"),
     "controls policy": (dict(controls=lj.Policy(lambda t, q, qd: q[:2], 2)), TypeError, "'controls'"),
     "controls channels": (dict(controls=lj.Constant(jnp.zeros(3))), ValueError, "'controls'"),
+    # a batch of controls passed without jax.vmap: a broadcasting error deep inside before
+    "controls batched": (
+        dict(controls=lj.Constant(jnp.zeros((2, 2)))),
+        ValueError,
+        "'controls' gives values of shape \\(2, 2\\).*jax.vmap",
+    ),
     "controls nan": (
         dict(controls=lj.Sinusoids(at(AMP, (0, 0), NAN), FREQ, PHASE)),
         ValueError,
@@ -1073,6 +1100,13 @@ def _bounds(**kw):
 
 
 TASK_RAISES = {
+    # the shipped tasks name their own argument (the bound they build named 'y' or 'sigma')
+    "u_turn width": (lambda: lc.u_turn(width=-1.0), ValueError, "u_turn: 'width'"),
+    "parallel_park max_steer": (
+        lambda: lc.parallel_park(max_steer=0.0),
+        ValueError,
+        "parallel_park: 'max_steer'",
+    ),
     "system": (lambda: _make_task(system="car"), TypeError, "'system'"),
     "controls": (lambda: _make_task(controls="sampled"), TypeError, "'controls'"),
     "integrator": (lambda: _make_task(integrator="rk4"), TypeError, "'integrator'"),
@@ -1137,7 +1171,6 @@ TASK_RAISES = {
     ),
     "parallel_park t_final": (lambda: lc.parallel_park(t_final=-1.0), ValueError, "'t_final'"),
     "parallel_park n_steps": (lambda: lc.parallel_park(n_steps=0), ValueError, "'n_steps'"),
-    "u_turn width": (lambda: lc.u_turn(width=-1.0), ValueError, "'y'.*lower < upper"),
     "reach goal": (lambda: lc.reach(goal=(1.0, 2.0, NAN)), ValueError, "'goal'"),
     "with_options n_steps": (lambda: PARK.with_options(n_steps=0), ValueError, "'n_steps'"),
     "with_options integrator": (lambda: PARK.with_options(integrator="rk4"), TypeError, "'integrator'"),

@@ -8,6 +8,8 @@ replayed on the high-accuracy reference meet the goal to about 1e-7 m, the solve
 
 from __future__ import annotations
 
+import numbers
+
 import numpy as np
 
 from ..integrators import AbstractIntegrator
@@ -40,11 +42,21 @@ def car_effort_scale(car: Car) -> np.ndarray:
     return np.asarray([I + m * rho**2, 0.5])
 
 
+def _positive(where: str, name: str, x):
+    """``x`` unchanged, or a ``ValueError`` naming ``name`` when it is a number that is not > 0
+    (other values are left to :meth:`Bounds.of`, which names the bound)."""
+    number = isinstance(x, numbers.Real) and not isinstance(x, bool)
+    if number and not (float(x) > 0 and np.isfinite(float(x))):
+        raise ValueError(f"{where}: '{name}' must be a positive finite number, got {x!r}")
+    return x
+
+
 def _car_to_rest(
     name, car, *, q0, goal, y_bound, weights, t_final, n_steps, integrator, max_steer, checkpoint, amplitude
 ):
     """The car tasks: from rest at ``q0`` to rest at the pose ``goal``, least effort,
     ``|y| <= y_bound`` and ``|sigma| <= max_steer`` at the nodes."""
+    max_steer = _positive(name, "max_steer", max_steer)
     scale = car_effort_scale(car)
     heading, position, rest, bounds = weights
     q = {"sigma": max_steer} | ({} if y_bound is None else {"y": y_bound})
@@ -116,6 +128,7 @@ def u_turn(
     minimising the effort. Model: ``integrator`` (default ``lj.RDP(order=4)``) on ``system``
     (default ``lj.Car()``); ``checkpoint`` as for :func:`~ldap_jax.simulate` (default ``False``)."""
     car = model_of(system, Car, "u_turn")
+    width = _positive("u_turn", "width", width)
     return _car_to_rest(
         "u_turn",
         car,

@@ -152,6 +152,11 @@ class RDP(AbstractAlphaIntegrator):
         if isinstance(self.order, bool) or self.order not in (1, 2, 4, 6, 8):
             raise ValueError(f"RDP: 'order' must be 2, 4, 6 or 8, got {self.order!r}")
         a = concrete_float(self.alpha)
+        if self.order == 1 and (a is None or a == 0.5):
+            raise ValueError(
+                f"RDP: 'order' must be 2, 4, 6 or 8, got 1 (order 1 is what alpha != 1/2 gives, "
+                f"set from alpha; alpha={self.alpha!r} here)"
+            )
         if self.order >= 2 and a is not None and a != 0.5:
             raise ValueError(
                 f"RDP: 'order' {self.order} needs the symmetric base step alpha = 1/2, got alpha={a} "

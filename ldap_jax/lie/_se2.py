@@ -59,6 +59,24 @@ def _floats(x: ArrayLike) -> Array:
     return x if jnp.issubdtype(x.dtype, jnp.inexact) else x.astype(jnp.result_type(float))
 
 
+def _element(x: ArrayLike, caller: str, name: str, shape: tuple[int, ...] = (3,)) -> Array:
+    """:func:`_floats` of one element of shape ``shape`` (these maps act on one element: a batch
+    goes through :func:`jax.vmap`)."""
+    x = _floats(x)
+    if x.shape != shape:
+        raise ValueError(
+            f"lie.{caller}: {name!r} must have shape {shape} (one element; batch with jax.vmap), "
+            f"got {x.shape}"
+        )
+    return x
+
+
+def _retraction(caller: str, retraction: str) -> str:
+    if retraction not in ("exp", "cayley"):
+        raise ValueError(f"lie.{caller}: 'retraction' must be 'exp' or 'cayley', got {retraction!r}")
+    return retraction
+
+
 def small_angle(w: Array) -> tuple[Array, Array]:
     """Mask of ``|w|`` below a dtype-keyed threshold (``eps^(1/16)``: 0.105 in float64, 0.37 in
     float32), and a safe stand-in for ``w``.
@@ -147,20 +165,20 @@ def _half_cot_half(w: Array) -> Array:
 
 def hat(v: Float[ArrayLike, " 3"]) -> Float[Array, "3 3"]:
     """The hat map ``R^3 -> se(2)`` of App. B."""
-    v = _floats(v)
+    v = _element(v, "hat", "v")
     z = jnp.zeros_like(v[0])
     return jnp.array([[z, -v[0], v[1]], [v[0], z, v[2]], [z, z, z]])
 
 
 def vee(xi_hat: Float[ArrayLike, "3 3"]) -> Float[Array, " 3"]:
     """Inverse of :func:`hat`: ``(v1, v2, v3) = (X[1, 0], X[0, 2], X[1, 2])``."""
-    x = jnp.asarray(xi_hat)
+    x = _element(xi_hat, "vee", "xi_hat", (3, 3))
     return jnp.stack([x[1, 0], x[0, 2], x[1, 2]])
 
 
 def ad(v: Float[ArrayLike, " 3"]) -> Float[Array, "3 3"]:
     """Matrix of ``ad_v w = [v, w]`` (App. B): ``[[0, 0, 0], [v3, 0, -v1], [-v2, v1, 0]]``."""
-    v = _floats(v)
+    v = _element(v, "ad", "v")
     z = jnp.zeros_like(v[0])
     return jnp.array([[z, z, z], [v[2], z, -v[0]], [-v[1], v[0], z]])
 
@@ -171,7 +189,7 @@ def exp(v: Float[ArrayLike, " 3"]) -> Float[Array, " 3"]:
     Rotates by ``v1`` and translates by
     ``((v2 sin v1 - v3 (1 - cos v1)) / v1, (v2 (1 - cos v1) + v3 sin v1) / v1)``.
     """
-    v = _floats(v)
+    v = _element(v, "exp", "v")
     _, ws = small_angle(v[0])
     x, y = exp_translation(v[0], v[1], v[2], jnp.sin(ws), jnp.cos(ws))
     return jnp.stack([x, y, v[0]])
@@ -182,7 +200,7 @@ def log(g: Float[ArrayLike, " 3"]) -> Float[Array, " 3"]:
 
     ``(v2, v3) = [[c, w/2], [-w/2, c]] (x, y)`` with ``w = theta`` and ``c = (w/2) cot(w/2)``.
     """
-    g = _floats(g)
+    g = _element(g, "log", "g")
     w = jnp.arctan2(jnp.sin(g[2]), jnp.cos(g[2]))
     c = _half_cot_half(w)
     return jnp.stack([w, c * g[0] + 0.5 * w * g[1], -0.5 * w * g[0] + c * g[1]])
@@ -194,7 +212,7 @@ def cay(v: Float[ArrayLike, " 3"]) -> Float[Array, " 3"]:
     Corrected App. B: rotation block ``[[4 - v1^2, -4 v1], [4 v1, 4 - v1^2]] / (4 + v1^2)``,
     translation ``(4 v2 - 2 v1 v3, 4 v3 + 2 v1 v2) / (4 + v1^2)``, so ``theta = 2 atan(v1 / 2)``.
     """
-    v = _floats(v)
+    v = _element(v, "cay", "v")
     d = 4.0 + v[0] ** 2
     return jnp.stack(
         [
@@ -207,28 +225,28 @@ def cay(v: Float[ArrayLike, " 3"]) -> Float[Array, " 3"]:
 
 def cay_inv(g: Float[ArrayLike, " 3"]) -> Float[Array, " 3"]:
     """Inverse Cayley map: ``v1 = 2 tan(theta/2)``, ``(v2, v3) = (x + v1 y / 2, y - v1 x / 2)``."""
-    g = _floats(g)
+    g = _element(g, "cay_inv", "g")
     w = 2.0 * jnp.tan(g[2] / 2.0)
     return jnp.stack([w, g[0] + 0.5 * w * g[1], g[1] - 0.5 * w * g[0]])
 
 
 def compose(g1: Float[ArrayLike, " 3"], g2: Float[ArrayLike, " 3"]) -> Float[Array, " 3"]:
     """``g1 g2`` for poses ``(x, y, theta)`` (angles add, no wrapping)."""
-    g1, g2 = _floats(g1), _floats(g2)
+    g1, g2 = _element(g1, "compose", "g1"), _element(g2, "compose", "g2")
     c, s = jnp.cos(g1[2]), jnp.sin(g1[2])
     return jnp.stack([g1[0] + c * g2[0] - s * g2[1], g1[1] + s * g2[0] + c * g2[1], g1[2] + g2[2]])
 
 
 def inverse(g: Float[ArrayLike, " 3"]) -> Float[Array, " 3"]:
     """``g^-1`` for a pose ``(x, y, theta)``."""
-    g = _floats(g)
+    g = _element(g, "inverse", "g")
     c, s = jnp.cos(g[2]), jnp.sin(g[2])
     return jnp.stack([-(c * g[0] + s * g[1]), s * g[0] - c * g[1], -g[2]])
 
 
 def retract(v: Float[ArrayLike, " 3"], retraction: str) -> Float[Array, " 3"]:
     """``tau(v)`` as a pose, ``tau in {exp, cay}`` (``retraction`` is ``"exp"`` or ``"cayley"``)."""
-    return exp(v) if retraction == "exp" else cay(v)
+    return exp(v) if _retraction("retract", retraction) == "exp" else cay(v)
 
 
 def dexp_inv(v: Float[ArrayLike, " 3"]) -> Float[Array, "3 3"]:
@@ -241,7 +259,7 @@ def dexp_inv(v: Float[ArrayLike, " 3"]) -> Float[Array, "3 3"]:
 
     whose Taylor expansion is ``I - ad_v/2 + ad_v^2/12 + ...`` (the paper's (31) truncation).
     """
-    v = _floats(v)
+    v = _element(v, "dexp_inv", "v")
     w = v[0]
     c = _half_cot_half(w)
     small, ws = small_angle(w)
@@ -256,7 +274,7 @@ def dcay_inv(v: Float[ArrayLike, " 3"]) -> Float[Array, "3 3"]:
 
     ``dcay^-1_v = I - ad_v / 2 + [v1 v, 0_{3x2}] / 4``, i.e. ``w -> (I - v^/2) w^ (I + v^/2)`` (29).
     """
-    v = _floats(v)
+    v = _element(v, "dcay_inv", "v")
     extra = jnp.zeros((3, 3), v.dtype).at[:, 0].set(0.25 * v[0] * v)
     return jnp.eye(3, dtype=v.dtype) - 0.5 * ad(v) + extra
 
@@ -278,11 +296,12 @@ def dtau_inv(v: Float[ArrayLike, " 3"], retraction: str, order: int | None = Non
     Raises:
         ValueError: if ``order`` is not ``None`` or a positive integer.
     """
-    v = _floats(v)
+    v = _element(v, "dtau_inv", "v")
+    _retraction("dtau_inv", retraction)
     if order is None:
         return dexp_inv(v) if retraction == "exp" else dcay_inv(v)
-    if order < 1:
-        raise ValueError(f"dtau_inv: 'order' must be None or >= 1, got {order}")
+    if isinstance(order, bool) or not isinstance(order, int) or order < 1:
+        raise ValueError(f"lie.dtau_inv: 'order' must be None or an integer >= 1, got {order!r}")
     a = ad(v)
     out = jnp.eye(3, dtype=v.dtype) - 0.5 * a
     if order >= 2:
@@ -298,13 +317,13 @@ def dtau_inv(v: Float[ArrayLike, " 3"], retraction: str, order: int | None = Non
 
 def tangent_to_jaxlie(v: Float[ArrayLike, " 3"]) -> Float[Array, " 3"]:
     """``(omega, v_x, v_y)`` (ours, the paper's) -> ``(v_x, v_y, omega)`` (jaxlie's)."""
-    v = _floats(v)
+    v = _element(v, "tangent_to_jaxlie", "v")
     return jnp.stack([v[1], v[2], v[0]])
 
 
 def tangent_from_jaxlie(t: Float[ArrayLike, " 3"]) -> Float[Array, " 3"]:
     """``(v_x, v_y, omega)`` (jaxlie's) -> ``(omega, v_x, v_y)`` (ours, the paper's)."""
-    t = jnp.asarray(t)
+    t = _element(t, "tangent_from_jaxlie", "t")
     return jnp.stack([t[2], t[0], t[1]])
 
 
@@ -379,7 +398,7 @@ class SE2(eqx.Module):
     @staticmethod
     def cay(v: ArrayLike) -> SE2:
         """``cay(v^)``, with the rotation in rational form (no trigonometric function)."""
-        v = _floats(v)
+        v = _element(v, "SE2.cay", "v")
         d = 4.0 + v[0] ** 2
         x, y, _ = cay(v)
         return SE2(jnp.stack([(4.0 - v[0] ** 2) / d, 4.0 * v[0] / d, x, y]))
