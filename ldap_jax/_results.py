@@ -54,10 +54,10 @@ class RESULTS(eqx.Enumeration):
         "or early sample times ts (reference), a non-finite initial state, non-finite controls, "
         "qdot0 violating the constraints, a physical parameter out of range (e.g. a non-positive "
         "mass, or I >= m l^2 for the snakeboard), alpha outside [0, 1], or alpha != 1/2 for "
-        "RDP(order=4 | 6). It was found on traced "
-        "values (inside jit or vmap), so it is reported for this trajectory alone instead of "
-        "raised (every node is NaN); call simulate (or reference, or discretize) eagerly on this "
-        "member to get the error naming the argument."
+        "RDP(order=4 | 6 | 8). It was found on traced values (inside jit or vmap), where no "
+        "ValueError can be raised: every node of this trajectory is NaN, and simulate (or "
+        "reference, or discretize) called eagerly on this member raises the error naming the "
+        "argument."
     )
     max_steps_reached = (
         "the adaptive solver reached max_steps before the final time (lj.reference): the "

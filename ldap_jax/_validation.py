@@ -326,7 +326,7 @@ def input_result(
     """The value checks on traced values, as a result code (``invalid_input`` or ``successful``):
     finite times with ``t_final > t0``, a finite initial state, finite controls (every floating
     leaf) passing their ``value_checks``, the system's parameter checks, ``alpha`` in [0, 1] (and
-    ``alpha = 1/2`` for a composition, ``RDP(order=4 | 6)``) and,
+    ``alpha = 1/2`` for a composition, ``RDP(order=4 | 6 | 8)``) and,
     with ``check_constraints``,
     ``qdot0`` on the constraints. ``t_final=None`` skips the time check. Finite inputs whose start
     is at the system's singularity (``|singularity(q0)| < eps^(1/4)``, the snakeboard within 1.2e-4
@@ -345,7 +345,7 @@ def input_result(
     alpha = getattr(integrator, "alpha", None)
     if alpha is not None:
         ok = ok & (alpha >= 0) & (alpha <= 1)
-        if getattr(integrator, "order", 2) > 2:  # a composition (RDP(order=4 | 6)) of symmetric steps
+        if getattr(integrator, "order", 2) > 2:  # a composition (RDP(order=4 | 6 | 8)) of symmetric steps
             ok = ok & (alpha == 0.5)
     # a start at the singularity is that (what is derived there, e.g. a constraint residual, may
     # not be finite)

@@ -214,7 +214,7 @@ def _check_periodic(system, periodic, constraints, q0, qdot0, n_steps, integrato
         raise ValueError(f"'n_steps' of a periodic task must be at least 2, got {n_steps}")
     if integrator is not None and not isinstance(integrator, RDP):
         raise ValueError(
-            "a periodic task needs an RDP integrator (lj.RDP(order=2 | 4 | 6)), whose flat state "
+            "a periodic task needs an RDP integrator (lj.RDP(order=2 | 4 | 6 | 8)), whose flat state "
             f"(q, P, nu) is invariant under the symmetry; got {type(integrator).__name__}"
         )
     unknown = [n for n in periodic[0].cyclic if n not in system.shape_names]

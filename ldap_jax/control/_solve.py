@@ -124,7 +124,8 @@ def solve(
     Minimises the task's objective over the node controls (and a gait's start), subject to the
     discrete dynamics of the task's integrator, its constraints (terminal and initial equalities,
     a gait's return conditions, path inequalities) and its bounds at the nodes, by a primal-dual
-    interior-point method with the exact Hessian of the Lagrangian and a Riccati solve of each
+    interior-point method (Gauss-Newton Hessian until the constraints are met to
+    ``curvature_tol``, then the dynamics' curvature too, ``hessian``) and a Riccati solve of each
     Newton step (:mod:`ldap_jax.control._ipm`). Multiple shooting: the initial states come from a
     rollout of ``params0``. One compilation per problem structure; jit-, vmap- and grad-able:
     ``jax.grad``/``jax.jacfwd`` of the solution with respect to the task's arrays (model

@@ -47,8 +47,8 @@ def chaplygin_sleigh(m: float = 1.0, I: float = 0.2, a: float = 0.3) -> System: 
     alone: ``v_x_dot = a omega^2``, ``(I + m a^2) omega_dot = -m a v_x omega``. Energy is conserved.
 
     Args:
-        m: mass. I: yaw inertia about the centre of mass. a: distance from the contact point to
-            the centre of mass. All positive.
+        m: mass (kg, default 1). I: yaw inertia about the centre of mass (kg m^2, default 0.2).
+            a: distance from the contact point to the centre of mass (m, default 0.3). All positive.
     """
     p = _positive(m=m, I=I, a=a)
 
@@ -102,8 +102,10 @@ def roller_racer(
     cycles: the racer has gaits (``lc.make_gait``).
 
     Args:
-        m1, I1: mass and yaw inertia of the front body. m2, I2: of the rear body.
-        d1, d2: front axle to hinge, hinge to rear axle (``d1 != d2``). k: hinge stiffness.
+        m1, I1: mass and yaw inertia of the front body (kg, kg m^2; defaults 1 and 0.1).
+        m2, I2: of the rear body (defaults 0.5 and 0.05).
+        d1, d2: front axle to hinge, hinge to rear axle (m, ``d1 != d2``; defaults 0.5 and 0.3).
+        k: hinge stiffness (N m/rad, default 1).
         drag: rolling-resistance coefficient (N s/m, positive), or ``None`` (default): no friction.
     """
     p = _positive(m1=m1, I1=I1, m2=m2, I2=I2, d1=d1, d2=d2, k=k)
