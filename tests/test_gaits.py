@@ -150,6 +150,66 @@ def test_gait_bad_inputs_are_clear():
         lc.replay_gait(lc.parallel_park(n_steps=10), None)
     with pytest.raises(ValueError, match="'cycles'"):
         lc.replay_gait(lc.drive_gait(n_steps=10), None, cycles=0)
+    with pytest.raises(TypeError, match="make_gait: 'system'"):
+        lc.make_gait(None, period=1.0, n_steps=10, objective=(lc.Displacement(),))
+    with pytest.raises(ValueError, match="floquet: 'M' must be a square"):
+        lc.floquet(np.eye(3)[:2])
+    # one name is a name (it was split into its letters)
+    assert lc.make_gait(sb, period=1.0, n_steps=10, **(kw | dict(cyclic="psi"))).periodic.cyclic == ("psi",)
+
+
+def test_a_coordinate_the_equations_depend_on_is_not_cyclic():
+    """``cyclic`` names coordinates that no equation depends on. The snakeboard's steering angle
+    declared cyclic was accepted: the solve reported success for a "gait" whose phi went 0 -> 1
+    per cycle, which replay_gait compared without phi and which met cos(phi) = 0 in its second
+    cycle. A built-in model declares its cyclic coordinates; an ``lj.System`` is tested on its
+    equations (the racer's hinge angle is refused, a rotor that nothing depends on accepted)."""
+    sb = lj.Snakeboard()
+    kw = dict(period=np.pi, n_steps=10, objective=(lc.Displacement(),))
+    with pytest.raises(ValueError, match=r"\['phi'\] are not cyclic: Snakeboard"):
+        lc.make_gait(sb, cyclic=("psi", "phi"), **kw)
+    with pytest.raises(ValueError, match=r"\['phi'\] are not cyclic: System"):
+        lc.make_gait(lj.roller_racer(drag=0.3), cyclic=("phi",), **kw)
+
+    def lagrangian(r, u, xi):  # a knife-edge sleigh carrying a rotor of angle r
+        return 0.5 * (xi[1] ** 2 + (xi[2] + 0.3 * xi[0]) ** 2 + 0.2 * xi[0] ** 2 + 0.05 * (xi[0] + u[0]) ** 2)
+
+    rotor = lj.System(
+        1,
+        lagrangian,
+        lambda r: jnp.zeros((3, 1)),
+        lambda r: jnp.eye(3, 2),
+        lambda r: jnp.array([[0.0, 0.0, 1.0, 0.0]]),
+        shape_names=("rotor",),
+    )
+    assert lc.make_gait(rotor, cyclic=("rotor",), **kw).periodic.cyclic == ("rotor",)
+
+
+def test_a_warm_start_from_a_solution_stays_at_its_optimum():
+    """A custom gait (the snakeboard's most displacement along the diagonal, RDP order 2) re-solved
+    from its own Solution: the states were pushed 1e-2 off their active bounds, far from the
+    optimum for the warm start's barrier of 1e-6, and the re-solve spent its 1000 iterations at a
+    KKT error of 2.8e-8 (every sensitivity NaN). Pushed by 1e-9, it converges in a few iterations
+    to the same optimum (the objective is flat there: within 1e-6 of it relative)."""
+    sb, r2 = lj.Snakeboard(), np.sqrt(0.5)
+    task = lc.make_gait(
+        sb,
+        period=2.0,
+        n_steps=60,
+        objective=(lc.Displacement((r2, r2)),),
+        constraints=(lc.InitialRest((0, 2)),),
+        cyclic=("psi",),
+        bounds=lc.Bounds.of(sb, q={"phi": 0.8}, u={"f_psi": 0.08, "f_phi": (-0.05, 0.15)}),
+        integrator=lj.RDP(order=2),
+    )
+    sol = lc.solve(task)
+    assert bool(sol.converged), lc.SOLVER_RESULTS[sol.result]
+    warm = lc.solve(task, sol)
+    assert bool(warm.converged) and int(warm.iterations) < 40, (
+        lc.SOLVER_RESULTS[warm.result],
+        warm.iterations,
+    )
+    assert abs(float(warm.cost) - float(sol.cost)) < 1e-6 * abs(float(sol.cost)), (warm.cost, sol.cost)
 
 
 def test_gait_analysis_and_tracker_check_their_inputs(drive):

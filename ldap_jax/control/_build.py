@@ -223,7 +223,43 @@ def _check_periodic(system, periodic, constraints, q0, qdot0, n_steps, integrato
             f"lc.Periodic: unknown cyclic coordinates {unknown}; {type(system).__name__}'s shape "
             f"coordinates are {system.shape_names}"
         )
+    dependent = _not_cyclic(system, periodic[0].cyclic)
+    if dependent:
+        raise ValueError(
+            f"lc.Periodic: {dependent} are not cyclic: {type(system).__name__}'s equations depend on "
+            "them, so a gait must bring them back after each period (a cyclic coordinate, such as a "
+            "rotor or wheel angle, appears in none of the equations); leave them out of 'cyclic'"
+        )
     return None, None
+
+
+def _not_cyclic(system: AbstractSystem, names: tuple[str, ...]) -> list[str]:
+    """The ``names`` whose shift changes the system's equations. A system that declares its
+    cyclic coordinates (``cyclic_names``) is taken at its word; otherwise the continuous
+    equations ``(qdot, vdot) = ode((q, v), c)`` are evaluated at three random states and
+    controls, and again with each coordinate shifted by 0.37: a cyclic one changes nothing
+    (to 1e-9 relative; a point where the equations are not finite is skipped)."""
+    if not names:
+        return []
+    if system.cyclic_names is not None:
+        return [n for n in names if n not in system.cyclic_names]
+    rng = np.random.default_rng(0)
+    d, dtype = system.n_config, jnp.result_type(float)
+    q = rng.uniform(-0.5, 0.5, (3, d))
+    v = rng.normal(0.0, 0.5, (3, system.n_velocities))
+    c = rng.normal(0.0, 0.3, (3, system.n_controls))
+    index = [3 + system.shape_names.index(n) for n in names]
+    shifted = np.stack([q + 0.37 * np.eye(d)[i] for i in index])  # (names, 3, d)
+
+    def rhs(q, v, c):
+        return jnp.concatenate(system.ode((q, v), c))
+
+    batched = jax.jit(jax.vmap(jax.vmap(rhs), (0, None, None)))
+    out = np.asarray(batched(np.stack([q, *shifted]).astype(dtype), v.astype(dtype), c.astype(dtype)))
+    base, moved = out[0], out[1:]
+    ok = np.isfinite(base).all(axis=-1) & np.isfinite(moved).all(axis=-1)  # (names, 3)
+    change = np.abs(moved - base[None]).max(axis=-1) / (1.0 + np.abs(base).max(axis=-1))[None]
+    return [n for n, bad in zip(names, np.any(ok & (change > 1e-9), axis=-1)) if bad]
 
 
 def _check_bounds(bounds: Bounds, d: int, m: int, context: str) -> Bounds:

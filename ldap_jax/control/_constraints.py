@@ -304,7 +304,9 @@ class Periodic(AbstractConstraint):
         weight: penalty weight of the return conditions in ``optimize`` (default 1).
     """
 
-    cyclic: tuple[str, ...] = eqx.field(static=True, default=())
+    cyclic: tuple[str, ...] = eqx.field(
+        static=True, default=(), converter=lambda c: (c,) if isinstance(c, str) else tuple(c)
+    )
     weight: Array = eqx.field(default=1.0, converter=asarray)
 
 

@@ -173,6 +173,8 @@ def floquet(M: np.ndarray, *, cluster: float = 1e-3, rank_tol: float = 1e-7) -> 
     (the power of the cycle count by which an error grows: the largest block size minus 1).
     """
     M = np.asarray(M, float)
+    if M.ndim != 2 or M.shape[0] != M.shape[1]:
+        raise ValueError(f"floquet: 'M' must be a square matrix (a monodromy), got shape {M.shape}")
     if not np.all(np.isfinite(M)):
         raise ValueError("floquet: 'M' has non-finite entries (the cycle's rollout failed?)")
     n = M.shape[0]

@@ -81,7 +81,9 @@ def make_gait(
         constraints: further constraints: a prescribed displacement per cycle
             (``lc.NetDisplacement(dx=..., dy=..., dtheta=...)``), the anchor on the start
             (``lc.InitialRest(indices)``), path constraints.
-        cyclic: names of the cyclic shape coordinates (start at 0, drift freely).
+        cyclic: names of the cyclic shape coordinates (start at 0, drift freely; default none):
+            coordinates that no equation depends on, such as a rotor or wheel angle (a name the
+            equations depend on is refused).
         bounds: bounds at the nodes (``lc.Bounds.of(system, q=..., u=...)``).
         scale: per-channel control scale (default: the control bounds' half-widths where finite,
             else 1).
@@ -102,6 +104,14 @@ def make_gait(
     Raises:
         TypeError, ValueError: ``period <= 0``, ``n_steps < 2``, and as :func:`make_task`.
     """
+    if not isinstance(system, AbstractSystem):
+        raise TypeError(
+            f"make_gait: 'system' must be an ldap_jax system (lj.Snakeboard(), lj.Car(), an "
+            f"lj.System), got {type(system).__name__}"
+        )
+    cyclic = (cyclic,) if isinstance(cyclic, str) else tuple(cyclic)  # one name, or several
+    if not all(isinstance(n, str) for n in cyclic):
+        raise TypeError(f"make_gait: 'cyclic' must be a tuple of shape coordinate names, got {cyclic!r}")
     period, n_steps = _period(period), _steps(n_steps)
     m = system.n_controls
     if bounds is not None and not isinstance(bounds, Bounds):

@@ -29,10 +29,11 @@ def replay(task: Task, params, *, rtol: float | None = None, atol: float | None 
     the terminal speed of the reference (``final_speed_ref``, the norm of ``(xdot, ydot,
     thetadot)``), the largest bound violation at the nodes on the reference (``max_bound_violation``)
     and between them (``max_bound_violation_between``: the configuration bounds at three points
-    inside every step; the optimiser holds the bounds at the nodes only, and a state on a bound
-    with a velocity across it leaves by ``O(h^2)`` in between: the drive gait's steering angle
-    2.6e-4 rad at N = 100), every term (``terms_reference``), the ``forward_displacement`` of the
-    reference and its result (``reference_result``, an :data:`ldap_jax.RESULTS` item).
+    inside every step; the optimiser holds the bounds at the nodes only, and a coordinate on a
+    bound at a node leaves it by ``O(h^2)`` in between when force-driven, the drive gait's steering
+    angle 2.6e-4 rad at N = 100, and by ``O(h)`` when its rate is a control, as the car's
+    ``sigma``), every term (``terms_reference``), the ``forward_displacement`` of the reference
+    and its result (``reference_result``, an :data:`ldap_jax.RESULTS` item).
 
     ``params`` are one solution's (``lc.solve(task).params``; the
     :class:`~ldap_jax.control.Solution` itself counts as its ``params``, with a warning when it

@@ -157,6 +157,10 @@ class AbstractSystem(eqx.Module):
     control_names: ClassVar[tuple[str, ...]]
     kinematic: ClassVar[tuple[bool, ...]]
     n_velocities: ClassVar[int]
+    #: The shape coordinates that nothing depends on (a rotor or wheel angle: the equations are
+    #: invariant under shifting them), by name; ``None`` (default): not declared, a gait's
+    #: ``cyclic`` coordinates are then tested on the equations themselves.
+    cyclic_names: ClassVar[tuple[str, ...] | None] = None
 
     def parameter_checks(self) -> tuple[tuple[str, Array | np.ndarray | np.bool_], ...]:
         """``(message, condition)`` pairs the physical parameters must satisfy (default: none); a

@@ -56,6 +56,7 @@ class Car(AbstractClosedFormSystem):
     l: Array = eqx.field(converter=physical_parameter, default=0.5)  # noqa: E741
 
     shape_names: ClassVar[tuple[str, ...]] = ("psi", "sigma")
+    cyclic_names: ClassVar[tuple[str, ...] | None] = ("psi",)  # the wheel angle
     control_names: ClassVar[tuple[str, ...]] = ("f_psi", "u_sigma")
     kinematic: ClassVar[tuple[bool, ...]] = (False, True)
     n_velocities: ClassVar[int] = 1

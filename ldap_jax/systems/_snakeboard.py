@@ -86,6 +86,7 @@ class Snakeboard(AbstractClosedFormSystem):
     J: Array = eqx.field(converter=physical_parameter, default=0.02)
 
     shape_names: ClassVar[tuple[str, ...]] = ("psi", "phi")
+    cyclic_names: ClassVar[tuple[str, ...] | None] = ("psi",)  # the rotor angle (not phi, the steering)
     control_names: ClassVar[tuple[str, ...]] = ("f_psi", "f_phi")
     kinematic: ClassVar[tuple[bool, ...]] = (False, False)
     n_velocities: ClassVar[int] = 3
