@@ -192,7 +192,9 @@ class Sinusoids(AbstractControls):
                 col = 0.0
                 for a, w, p, dsv, dcv in terms[i]:
                     if custom:
-                        sc = jax.lax.stop_gradient((fractions, dsv, dcv))
+                        # (sin, cos)(w f h) keep their dependence on w and h (the VJP returns
+                        # none for them): a second reverse pass differentiates the first through them
+                        sc = (jax.lax.stop_gradient(fractions), dsv, dcv)
                         col = col + _sinusoid_term(a, w, p, t, h, sc)
                     else:
                         s, c = sincos(w * t + p, whole=True)

@@ -498,6 +498,28 @@ def test_sinusoid_sampler_vjp_equals_autodiff(order):
     _leaves_close(g2, g1, f"order {order}")
 
 
+@pytest.mark.parametrize("integrator", ["rk4", "rdp4"])
+def test_reverse_over_reverse_through_the_sampler_equals_forward_over_reverse(integrator):
+    """A gradient of a gradient through the sampler's hand-written VJP (``jax.jacrev`` of
+    ``jax.grad``) equals ``jax.hessian`` (forward over reverse, which JAX differentiates itself)
+    in a sinusoid's frequency and in ``t_final``. The VJP used to read ``(sin, cos)(w f h)`` as
+    constants: the second pass missed their dependence on ``w`` and ``h``, 6% off in the
+    frequency and 14% in ``t_final`` for RK4 (car, 20 steps)."""
+    car = lj.Car()
+    q0, qdot0, ctl = car.sample_maneuver(jax.random.PRNGKey(1))
+    integ = lj.RK4() if integrator == "rk4" else lj.RDP(order=4)
+
+    def f(x):  # x = (the torque's first frequency, t_final)
+        c = lj.Sinusoids(ctl.amplitude, ctl.frequency.at[0, 0].set(x[0]), ctl.phase)
+        return lj.simulate(car, q0, qdot0, c, t_final=x[1], n_steps=20, integrator=integ).q[-1, 0]
+
+    x = jnp.array([float(ctl.frequency[0, 0]), 3.0])
+    rev_rev = jax.jit(jax.jacrev(jax.grad(f)))(x)
+    fwd_rev = jax.jit(jax.hessian(f))(x)
+    assert float(jnp.max(jnp.abs(fwd_rev))) > 0.01
+    np.testing.assert_allclose(np.asarray(rev_rev), np.asarray(fwd_rev), rtol=1e-12, atol=1e-13)
+
+
 def _leaves_close(a, b, what):
     """Every leaf of ``a`` equals ``b``'s to 1e-12 of the largest entry of ``b`` (a cotangent that
     is exactly zero in one is exactly zero in the other)."""
