@@ -237,13 +237,23 @@ def simulate(
     leave failed members out of a batched loss, mask their *outputs* with a double ``where``,
     ``q = jnp.where(traj.failed, 0.0, traj.q)`` (or :meth:`Trajectory.filled`), before the loss
     reads them: the failed members then contribute exact zeros, and the healthy members'
-    gradients are those of the batch without them. Masking only the loss
-    (``jnp.where(traj.failed, 0.0, loss(traj.q))``) is not enough: the loss's own derivative at
-    the NaN nodes is NaN (``0 * NaN``), in any JAX program. In forward mode (``jax.jacfwd``,
+    gradients are those of the batch without them. One exception in reverse mode: a member
+    whose failing step has non-finite partial derivatives itself (an overflow, ``nonfinite``,
+    e.g. a control amplitude of 1e160) makes the gradient of a parameter the batch shares (the
+    model's, a common gain) NaN even when masked, since JAX sums the members' contributions
+    before any mask could act on them; its own inputs' gradients are NaN too. A ``singular``
+    failure (finite partials) is masked exactly; ``jax.jacfwd`` is exact in both cases. Masking
+    only the loss (``jnp.where(traj.failed, 0.0, loss(traj.q))``) is not enough: the loss's own
+    derivative at the NaN nodes is NaN (``0 * NaN``), in any JAX program. In forward mode (``jax.jacfwd``,
     ``jax.hessian``, applied to a function that calls ``simulate`` directly or under ``jax.jit``
     inside them) the mask is linear: a loss linear in a failed node gets 0 from it (its value is
     NaN). A forward-mode transformation of an already jitted function that calls ``simulate``
     (``jax.jacfwd(jax.jit(f))``) is not supported: apply ``jax.jit`` outside it.
+    ``jax.linearize`` is not supported either (it traces as ``jax.grad`` does, and the rollout's
+    reverse-mode derivatives cannot be pushed forward): use ``jax.jvp`` or ``jax.jacfwd``. A
+    gradient of a gradient (reverse over reverse) works for the closed-form steps and RK; through
+    Newton's method (DLA, ``RDP(solver="newton")`` or ``dtau_order=None``, an ``lj.System``'s
+    RDP) JAX cannot reverse its ``while_loop`` twice: use ``jax.hessian`` (forward over reverse).
 
     Raises:
         TypeError: a system, controls or integrator of the wrong type.
