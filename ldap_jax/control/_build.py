@@ -243,6 +243,19 @@ def _not_cyclic(system: AbstractSystem, names: tuple[str, ...]) -> list[str]:
         return []
     if system.cyclic_names is not None:
         return [n for n in names if n not in system.cyclic_names]
+    if not is_concrete(system):  # a model of traced parameters (a sensitivity): checked when built
+        return []
+    # once per system's functions and names (a loop of ``with_options`` would compile it each time)
+    key = (type(system), names, *(x for x in jax.tree_util.tree_leaves(system) if callable(x)))
+    if key not in _CYCLIC_CHECKED:
+        _CYCLIC_CHECKED[key] = _shifted_equations_differ(system, names)
+    return _CYCLIC_CHECKED[key]
+
+
+_CYCLIC_CHECKED: dict = {}
+
+
+def _shifted_equations_differ(system: AbstractSystem, names: tuple[str, ...]) -> list[str]:
     rng = np.random.default_rng(0)
     d, dtype = system.n_config, jnp.result_type(float)
     q = rng.uniform(-0.5, 0.5, (3, d))
