@@ -1121,12 +1121,22 @@ def check_scheme_properties():
         0.79854399093482996340,
     ]
     kahan_li = tuple(half) + tuple(half[-2::-1])
+    # the library's default order 6: 11 stages, the middle weight closing sum = 1
+    half11 = [
+        0.2106183931448784,
+        0.18525732199797929,
+        0.18020017218187612,
+        -0.4434353876646512,
+        0.11522793883581066,
+    ]
+    least_error11 = (*half11, 1.0 - 2.0 * sum(half11), *half11[::-1])
     t_final = 2.0
     ref = reference(sb_field(), *sb_initial(), t_final)
     for label, weights, ns in (
         ("alpha = 1/2", (1.0,), (50, 100, 200)),
         ("Suzuki 5-stage", suzuki, (10, 20, 40)),
         ("Kahan-Li s9odr6a", kahan_li, (5, 10, 20)),
+        ("least-error 11-stage order 6", least_error11, (5, 10, 20)),
     ):
         errs = [pose_err(run_sb_explicit(n, t_final, weights=weights), ref) for n in ns]
         CONFIRMED.append(

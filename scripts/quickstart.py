@@ -358,8 +358,8 @@ def main(args: argparse.Namespace) -> None:
         f"Written by `scripts/quickstart.py{' --quick' if args.quick else ''}` (seed {args.seed}), with the "
         "default `lj.Car()` and `lj.Snakeboard()`: one random maneuver per model "
         f"(`system.sample_maneuver`), {T_FINAL:g} s at h = {H_SHOW:g} s (N = {n_show}), errors against "
-        "`lj.reference` (diffrax Dopri8, rtol = atol = 1e-11). RDP orders 4 and 6 compose 5 and 9 "
-        "RDP substeps per step.",
+        "`lj.reference` (diffrax Dopri8, rtol = atol = 1e-11). RDP orders 4 and 6 compose "
+        f"{len(lj.RDP(order=4).weights)} and {len(lj.RDP(order=6).weights)} RDP substeps per step.",
         "",
         "| model | integrator | final position error [m] | max position error [m] | max abs(E - E_ref) [J] "
         "| max abs(E - E0 - W) [J] | fitted order |",
