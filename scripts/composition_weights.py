@@ -27,7 +27,8 @@ with 26 steps (286 substeps) instead of 40 (360) for the snakeboard.
     python scripts/composition_weights.py [--stages 11] [--starts 40] [--seed 1]
 
 (about 50 s per start on one core: 35 minutes for 40). The search is local from random starts: other
-starts may find other minima; the one printed last is the best found.
+starts may find other minima; the one printed last is the best found. With the defaults, start 9
+finds the weights above (after 8 minutes), and none of the 40 finds a smaller ``|L7|``.
 """
 
 from __future__ import annotations
