@@ -10,7 +10,7 @@ The script computes ``log(prod_i exp(g_i h X1 + (g_i h)^3 X3 + ...))`` as a powe
 whose coefficients are matrices (random ``X1 ... X7``, 5 x 5), reads the conditions off ``L3`` and
 ``L5``, and minimises ``|L7|`` (Frobenius norm, mean over three random sets) over the palindromic
 weights of ``s`` stages that satisfy them (SLSQP from random starts, then the conditions solved to
-round-off with the first two weights held). With 11 stages the family has two free weights
+round-off with all but the last three half weights held). With 11 stages the family has two free weights
 (Sofroniou and Spaletta, Optim. Methods Softw. 20 (2005), built order-6 schemes of this size the
 same way). It prints every order-6 scheme's ``|L7|`` and its effective error ``s |L7|^(1/6)``
 (the relative cost of reaching a given accuracy, up to one constant):
@@ -150,12 +150,12 @@ def search(stages: int, starts: int, seed: int, log=print) -> np.ndarray:
     x = best[1]
 
     def held(y):
-        return order_6_conditions(palindrome(np.concatenate([x[:2], y])))
+        return order_6_conditions(palindrome(np.concatenate([x[:-3], y])))
 
-    y = x[2:]
-    for _ in range(3):  # the conditions to round-off, the first two weights held
+    y = x[-3:]
+    for _ in range(3):  # the three conditions to round-off, the other weights held
         y = fsolve(held, y, xtol=1e-15)
-    return np.concatenate([x[:2], y])
+    return np.concatenate([x[:-3], y])
 
 
 def main(argv=None) -> None:
