@@ -156,6 +156,10 @@ def test_gait_bad_inputs_are_clear():
         lc.floquet(np.eye(3)[:2])
     # one name is a name (it was split into its letters)
     assert lc.make_gait(sb, period=1.0, n_steps=10, **(kw | dict(cyclic="psi"))).periodic.cyclic == ("psi",)
+    with pytest.raises(TypeError, match="make_gait: 'cyclic'"):
+        lc.make_gait(sb, period=1.0, n_steps=10, **(kw | dict(cyclic=(1,))))
+    with pytest.raises(TypeError, match="lc.Periodic: 'cyclic'"):
+        lc.Periodic(cyclic=(1,))
 
 
 def test_a_coordinate_the_equations_depend_on_is_not_cyclic():

@@ -289,6 +289,15 @@ class InitialConstraint(AbstractInitialConstraint):
         return _user_residual(self, self.fn(obs.q, obs.qdot, c))
 
 
+def cyclic_names(cyclic, where: str = "lc.Periodic") -> tuple[str, ...]:
+    """``cyclic`` as a tuple of coordinate names: one name, or several; a ``TypeError`` naming
+    ``where`` for anything else."""
+    names = (cyclic,) if isinstance(cyclic, str) else tuple(cyclic)
+    if not all(isinstance(n, str) for n in names):
+        raise TypeError(f"{where}: 'cyclic' must be a tuple of shape coordinate names, got {cyclic!r}")
+    return names
+
+
 class Periodic(AbstractConstraint):
     """The boundary condition of a gait: one period ``[0, T]``, with the start free.
 
@@ -304,9 +313,7 @@ class Periodic(AbstractConstraint):
         weight: penalty weight of the return conditions in ``optimize`` (default 1).
     """
 
-    cyclic: tuple[str, ...] = eqx.field(
-        static=True, default=(), converter=lambda c: (c,) if isinstance(c, str) else tuple(c)
-    )
+    cyclic: tuple[str, ...] = eqx.field(static=True, default=(), converter=cyclic_names)
     weight: Array = eqx.field(default=1.0, converter=asarray)
 
 

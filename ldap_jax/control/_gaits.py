@@ -29,7 +29,15 @@ from .._validation import check_positive_int
 from ..integrators import AbstractIntegrator
 from ..systems import AbstractSystem, Car, Snakeboard, System, roller_racer
 from ._build import make_task
-from ._constraints import AbstractConstraint, Bounds, InitialRest, NetDisplacement, Periodic, per_channel
+from ._constraints import (
+    AbstractConstraint,
+    Bounds,
+    InitialRest,
+    NetDisplacement,
+    Periodic,
+    cyclic_names,
+    per_channel,
+)
 from ._parameterizations import SampledControls
 from ._task import Guess, Task
 from ._tasks import car_effort_scale, model_of, snakeboard_steer
@@ -109,9 +117,7 @@ def make_gait(
             f"make_gait: 'system' must be an ldap_jax system (lj.Snakeboard(), lj.Car(), an "
             f"lj.System), got {type(system).__name__}"
         )
-    cyclic = (cyclic,) if isinstance(cyclic, str) else tuple(cyclic)  # one name, or several
-    if not all(isinstance(n, str) for n in cyclic):
-        raise TypeError(f"make_gait: 'cyclic' must be a tuple of shape coordinate names, got {cyclic!r}")
+    cyclic = cyclic_names(cyclic, "make_gait")  # one name, or several
     period, n_steps = _period(period), _steps(n_steps)
     m = system.n_controls
     if bounds is not None and not isinstance(bounds, Bounds):
@@ -129,7 +135,7 @@ def make_gait(
         n_steps=n_steps,
         objective=(objective,) if isinstance(objective, AbstractTerm) else tuple(objective),
         constraints=(
-            Periodic(tuple(cyclic)),
+            Periodic(cyclic),
             *((constraints,) if isinstance(constraints, AbstractConstraint) else constraints),
         ),
         bounds=bounds,
