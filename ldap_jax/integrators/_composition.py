@@ -23,6 +23,14 @@ def _palindrome(half: list[float]) -> tuple[float, ...]:
 
 _SUZUKI_P = 1.0 / (4.0 - 4.0 ** (1.0 / 3.0))
 _YOSHIDA_W = 1.0 / (2.0 - 2.0 ** (1.0 / 3.0))
+#: The first five weights of ``least_error11``; the middle one closes ``sum g = 1``.
+_LEAST_ERROR11 = (
+    0.2106183931448784,
+    0.18525732199797929,
+    0.18020017218187612,
+    -0.4434353876646512,
+    0.11522793883581066,
+)
 
 #: Composition schemes by name: ``(order, weights)``.
 SCHEMES: dict[str, tuple[int, tuple[float, ...]]] = {
@@ -50,27 +58,7 @@ SCHEMES: dict[str, tuple[int, tuple[float, ...]]] = {
     ),
     # 11 stages of order 6 with the least leading error found (scripts/composition_weights.py): at
     # equal error 0.75x the substeps of Kahan and Li's 9; every node inside the step (default, order 6)
-    "least_error11": (
-        6,
-        _palindrome(
-            [
-                0.2106183931448784,
-                0.18525732199797929,
-                0.18020017218187612,
-                -0.4434353876646512,
-                0.11522793883581066,
-                1.0
-                - 2.0
-                * (
-                    0.2106183931448784
-                    + 0.18525732199797929
-                    + 0.18020017218187612
-                    - 0.4434353876646512
-                    + 0.11522793883581066
-                ),
-            ]
-        ),
-    ),
+    "least_error11": (6, _palindrome([*_LEAST_ERROR11, 1.0 - 2.0 * sum(_LEAST_ERROR11)])),
     # Yoshida's 7-stage order-6 scheme (solution A): fewer stages, substeps leave the step
     "yoshida7": (
         6,
