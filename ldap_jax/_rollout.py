@@ -388,8 +388,9 @@ def rollout(
     else:
         advance = _run_on
 
-    def step(carry: _Carry, k, observe: bool):
-        """Step k: node k -> node k + 1 (observed when ``observe``)."""
+    def step(carry: _Carry, k, observe: bool, emitted: bool = True):
+        """Step k: node k -> node k + 1 (observed when ``observe``; ``emitted``: the observation
+        is the node's output, else it serves the diagnostics' tests alone)."""
         # after a failure the steps run on the failed state (on the frozen one, see advance), and
         # their results are discarded: cut their gradient with a select, so that a non-finite
         # partial inside them (times the zero cotangent a discarded value gets) cannot reach the
@@ -423,6 +424,16 @@ def rollout(
             else:
                 c_node = node_controls(k + 1, c_stage)
                 obs_new = _tracing.observe(integrator, system, new_state, c_node)
+                if not emitted:
+                    # a node inside a segment, observed for the tests alone: its derivative cut
+                    # (the segment's last node is observed again from its state, with one).
+                    # Carried with their derivatives, the node's velocity, energy and momentum
+                    # were transposed at every step of a reverse pass, their cotangents zero
+                    # unless the loss read the saved node's diagnostics (a terminal cost's gradient
+                    # took 1.35-1.4x as long). The power keeps its derivative: the work integral,
+                    # an output, sums it (unread, JAX drops it)
+                    cut = jax.tree_util.tree_map(jax.lax.stop_gradient, obs_new._replace(power=None))
+                    obs_new = cut._replace(power=obs_new.power)
             if diagnostics:
                 work = carry.work + 0.5 * h * (carry.obs.power + obs_new.power)
                 abs_work = carry.abs_work + 0.5 * jnp.abs(h) * (
@@ -511,7 +522,7 @@ def rollout(
     light = stride == 1 and not policy
 
     def inner_body(carry, k):
-        return step(carry, k, observe_inner)[0], None
+        return step(carry, k, observe_inner, emitted=policy)[0], None
 
     def segment(carry, j):
         if stride == 1:
@@ -522,7 +533,7 @@ def rollout(
         last = j * stride + stride - 1
         ks = j * stride + jnp.arange(stride, dtype=jnp.int32)
         carry, _ = jax.lax.scan(_policy_body(inner_body, checkpoint), carry, ks)
-        if not observe_inner:  # the inner steps observed nothing: observe the segment's last node
+        if not policy:  # the inner steps observed nothing, or for the tests alone: observe the last node
             if sample_node is None:
                 c_last = node_controls(last + 1, sample(last, carry.obs))
             else:

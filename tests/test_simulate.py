@@ -184,6 +184,40 @@ def test_gradient_wrt_initial_state_and_parameters(name):
     assert abs(grad[1]) > 1e-8
 
 
+@pytest.mark.parametrize("name", list(SYSTEMS))
+def test_saved_diagnostics_keep_their_derivatives_under_a_stride(name):
+    """The nodes inside a stride (or before save="final") are observed for the diagnostics' tests
+    without a derivative, and the saved node again from its state with one: the gradient of each
+    saved field (configuration, velocity, energy, work, momentum, constraint residual) with
+    respect to the controls and the initial state equals the one read from save="all" at the same
+    node."""
+    system = SYSTEMS[name]
+    q0, qdot0, ctl = index(maneuvers(system, 1, seed=17), 0)
+    full = lj.simulate(system, q0, qdot0, ctl, t_final=2.0, n_steps=24, check_constraints=False)
+    names = ("q", "qdot", "energy", "work", "momentum", "constraint_residual")
+    fields = [f for f in names if getattr(full, f).size]
+    assert len(fields) >= 5  # the car has no momentum
+
+    def read(save, node, args):
+        amplitude, x0 = args
+        c = lj.Sinusoids(amplitude=amplitude, frequency=ctl.frequency, phase=ctl.phase)
+        traj = lj.simulate(
+            system, q0.at[0].set(x0), qdot0, c, t_final=2.0, n_steps=24, save=save, check_constraints=False
+        )
+        return jnp.concatenate([jnp.ravel(getattr(traj, f)[node]) for f in fields])
+
+    def jac(save, node):  # one row per output, columns: the amplitudes, then x0
+        j = jax.jit(jax.jacrev(lambda a: read(save, node, a)))((ctl.amplitude, q0[0]))
+        return np.concatenate([np.asarray(j[0]).reshape(len(j[1]), -1), np.asarray(j[1])[:, None]], axis=1)
+
+    rows = np.repeat(fields, [np.size(getattr(full, f)[0]) for f in fields])
+    for got, want in ((jac("final", -1), jac("all", 24)), (jac(8, 2), jac("all", 16))):
+        for row, g, w in zip(rows, got, want):
+            scale = np.abs(w).max()
+            assert scale > 0 or row == "constraint_residual", row  # ~1e-16: safe_norm's derivative 0
+            np.testing.assert_allclose(g, w, rtol=0, atol=1e-12 * max(scale, 1.0), err_msg=row)
+
+
 def test_bad_checkpoint_policy_is_named():
     # (that every policy gives the same gradient, on the kernel and the Newton step, is
     # tests/test_closed_form.py::test_gradients_match)
@@ -355,10 +389,12 @@ def _inner_call_sites(jaxpr, found=None) -> dict:
 
 
 def test_every_save_option_has_the_step_once():
-    """A stride or save="final" puts the step and the observation of a node into the program as
-    often as save="all" does (the step once; the observation twice, node 0 and the loop): the
-    last step of a segment is not a second copy of the step (XLA compiled it twice; final-node
-    programs and their gradients then compiled 1.2-1.7x as long)."""
+    """A stride or save="final" puts the step into the program as often as save="all" does (once):
+    the last step of a segment is not a second copy of the step (XLA compiled it twice; final-node
+    programs and their gradients then compiled 1.2-1.7x as long). The observation is there twice
+    (node 0, the loop), and with diagnostics and a stride a third time: the segment's last node is
+    observed again from its state, with its derivative (the loop's observation serves the tests
+    alone, its derivative cut)."""
     sb = SYSTEMS["snakeboard"]
     q0, qdot0, ctl = index(maneuvers(sb, 1, seed=14), 0)
     kw = dict(t_final=1.0, n_steps=12)
@@ -373,7 +409,9 @@ def test_every_save_option_has_the_step_once():
         # each; the observation twice (node 0, the loop)
         assert counts["all", True] == [1, 1, 1, 2], counts
         assert counts["all", False] == [1, 1, 2], counts
-        assert all(c == counts["all", d] for (_, d), c in counts.items()), counts
+        for save in ("final", 4):
+            assert counts[save, False] == counts["all", False], counts
+            assert counts[save, True] == [1, 1, 1, 3], counts
 
 
 SINGULAR = lj.Sinusoids(
