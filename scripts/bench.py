@@ -184,8 +184,9 @@ def rollout_fn(system, integrator, n_steps, t_final=10.0, *, save="final", diagn
     return jax.jit(jax.vmap(one))
 
 
-def _terminal_loss(system, q0, qdot0, ctl, n, checkpoint):
-    """Sum over the batch of ``|(x_N, y_N)|^2``: the loss whose gradient is timed."""
+def _terminal_loss(system, q0, qdot0, ctl, n, checkpoint, diagnostics=False):
+    """Sum over the batch of ``|(x_N, y_N)|^2``: the loss whose gradient is timed (``diagnostics``:
+    the run's tests on, as ``simulate``'s default)."""
 
     def one(a, b, c):
         q = lj.simulate(
@@ -198,7 +199,7 @@ def _terminal_loss(system, q0, qdot0, ctl, n, checkpoint):
             check_constraints=False,
             checkpoint=checkpoint,
             save="final",
-            diagnostics=False,
+            diagnostics=diagnostics,
         ).q
         return jnp.sum(q[-1, :2] ** 2)
 
@@ -497,7 +498,9 @@ def default_call(cfg: Config, log) -> list[dict]:
     diagnostics=False``; the sum of a terminal cost over the batch and its gradient with respect to
     the controls (``checkpoint=False``), also with JAX's own derivative of the step in place of its
     hand-written VJP (:func:`_autodiff_problem`; the order-2 rollout carries the sinusoids from node
-    to node, differentiated by JAX, so the sampler's VJP has no part in these programs). Ratios:
+    to node, differentiated by JAX, so the sampler's VJP has no part in these programs); the same
+    terminal cost with the run's tests on (``simulate``'s default ``diagnostics=True``) and its
+    gradient, against the terminal cost without them and against its own forward. Ratios:
     the median over ``cfg.rounds`` rounds of each round's ratio (:func:`paired_ratio`), of the wall
     times and of the process CPU times (less sensitive to other processes on a shared machine),
     and the ratio of the minima of the wall times; the minor page faults of a call (median)."""
@@ -516,6 +519,9 @@ def default_call(cfg: Config, log) -> list[dict]:
     def loss(c):
         return _terminal_loss(system, q0, qdot0, c, n, False)
 
+    def diag_loss(c):
+        return _terminal_loss(system, q0, qdot0, c, n, False, diagnostics=True)
+
     ad_system, ad_ctl = _autodiff_problem(system, ctl)
 
     def ad_loss(c):
@@ -528,13 +534,20 @@ def default_call(cfg: Config, log) -> list[dict]:
         "terminal cost": (jax.jit(loss), (ctl,)),
         "its gradient": (jax.jit(jax.grad(loss)), (ctl,)),
         "its gradient, JAX's derivatives": (jax.jit(jax.grad(ad_loss)), (ad_ctl,)),
+        "terminal cost, diagnostics on": (jax.jit(diag_loss), (ctl,)),
+        "its gradient, diagnostics on": (jax.jit(jax.grad(diag_loss)), (ctl,)),
     }
     for f, args in fns.values():
         jax.block_until_ready(f(*args))
     times = paired_rounds({k: _timed(f, *args) for k, (f, args) in fns.items()}, cfg.rounds)
     rows = []
     for k, t in times.items():
-        base = "terminal cost" if k.startswith("its gradient") else "positions only"
+        if k == "its gradient, diagnostics on":
+            base = "terminal cost, diagnostics on"
+        elif k.startswith("its gradient") or k == "terminal cost, diagnostics on":
+            base = "terminal cost"
+        else:
+            base = "positions only"
         row = dict(
             call=k,
             B=b,
