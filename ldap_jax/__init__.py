@@ -16,6 +16,7 @@ from typing import Any as _Any
 from . import integrators as integrators
 from . import lie as lie
 from . import systems as systems
+from ._allocator import keep_freed_memory as keep_freed_memory
 from ._compilation_cache import compiler_options as compiler_options
 from ._compilation_cache import enable_compilation_cache as enable_compilation_cache
 from ._compilation_cache import memory_mappings as memory_mappings

@@ -34,6 +34,10 @@ else:
     # across cores (one program per core, as the study runs), next to the default single device.
     # Set before JAX starts; everything else here runs on the first device as usual.
     lj.use_cpu_cores()
+if "--kept-memory" in sys.argv:
+    # the process of default_call's rows with the allocator keeping freed memory (_kept_memory):
+    # set before JAX starts its threads, as lj.keep_freed_memory asks
+    lj.keep_freed_memory()
 
 import jax
 
@@ -489,7 +493,7 @@ def _one_core(cfg: Config, log) -> list[dict]:
         return json.load(f)
 
 
-def default_call(cfg: Config, log) -> list[dict]:
+def default_call(cfg: Config, log, *, kept: bool = False) -> list[dict]:
     """The default call against the positions-only rollout, and a gradient against its forward
     (snakeboard, RDP order 2, B x N, one device, a plain ``jax.jit``), in alternating rounds of one
     process: ``lj.simulate`` with its defaults (every node, every diagnostic) returning the whole
@@ -503,7 +507,9 @@ def default_call(cfg: Config, log) -> list[dict]:
     gradient, against the terminal cost without them and against its own forward. Ratios:
     the median over ``cfg.rounds`` rounds of each round's ratio (:func:`paired_ratio`), of the wall
     times and of the process CPU times (less sensitive to other processes on a shared machine),
-    and the ratio of the minima of the wall times; the minor page faults of a call (median)."""
+    and the ratio of the minima of the wall times; the minor page faults of a call (median). Then the
+    terminal cost and its gradient again in a process that keeps freed memory
+    (:func:`_kept_memory`; with ``kept``, that process's rows only)."""
     system = SYSTEMS["snakeboard"]
     b, n = cfg.batch, cfg.steps
     data = maneuvers(system, b)
@@ -527,22 +533,30 @@ def default_call(cfg: Config, log) -> list[dict]:
     def ad_loss(c):
         return _terminal_loss(ad_system, q0, qdot0, c, n, False)
 
-    fns = {
-        "positions only": call(lambda tr: tr.q, save="final", diagnostics=False),
-        "default, Trajectory": call(lambda tr: tr),
-        "default, .q[-1]": call(lambda tr: tr.q[-1]),
-        "terminal cost": (jax.jit(loss), (ctl,)),
-        "its gradient": (jax.jit(jax.grad(loss)), (ctl,)),
-        "its gradient, JAX's derivatives": (jax.jit(jax.grad(ad_loss)), (ad_ctl,)),
-        "terminal cost, diagnostics on": (jax.jit(diag_loss), (ctl,)),
-        "its gradient, diagnostics on": (jax.jit(jax.grad(diag_loss)), (ctl,)),
-    }
+    if kept:
+        fns = {
+            f"terminal cost{KEPT}": (jax.jit(loss), (ctl,)),
+            f"its gradient{KEPT}": (jax.jit(jax.grad(loss)), (ctl,)),
+        }
+    else:
+        fns = {
+            "positions only": call(lambda tr: tr.q, save="final", diagnostics=False),
+            "default, Trajectory": call(lambda tr: tr),
+            "default, .q[-1]": call(lambda tr: tr.q[-1]),
+            "terminal cost": (jax.jit(loss), (ctl,)),
+            "its gradient": (jax.jit(jax.grad(loss)), (ctl,)),
+            "its gradient, JAX's derivatives": (jax.jit(jax.grad(ad_loss)), (ad_ctl,)),
+            "terminal cost, diagnostics on": (jax.jit(diag_loss), (ctl,)),
+            "its gradient, diagnostics on": (jax.jit(jax.grad(diag_loss)), (ctl,)),
+        }
     for f, args in fns.values():
         jax.block_until_ready(f(*args))
     times = paired_rounds({k: _timed(f, *args) for k, (f, args) in fns.items()}, cfg.rounds)
     rows = []
     for k, t in times.items():
-        if k == "its gradient, diagnostics on":
+        if k.endswith(KEPT):  # their process's terminal cost (against itself: 1)
+            base = f"terminal cost{KEPT}"
+        elif k == "its gradient, diagnostics on":
             base = "terminal cost, diagnostics on"
         elif k.startswith("its gradient") or k == "terminal cost, diagnostics on":
             base = "terminal cost"
@@ -564,7 +578,29 @@ def default_call(cfg: Config, log) -> list[dict]:
             f"({row['ratio_cpu']:.3f}x in CPU time, {row['ratio_of_min']:.3f}x of minima), "
             f"{row['page_faults']:.0f} page faults per call"
         )
+    if not kept:
+        rows += _kept_memory(cfg, log)
     return rows
+
+
+#: the suffix of default_call's rows measured with the allocator keeping freed memory
+KEPT = ", freed memory kept"
+
+
+def _kept_memory(cfg: Config, log) -> list[dict]:
+    """:func:`default_call`'s terminal cost and its gradient in a new process that calls
+    :func:`ldap_jax.keep_freed_memory` before JAX starts (a setting of the whole process, which
+    cannot be undone for the other rows), its rows read back."""
+    import subprocess
+    import tempfile
+
+    out = os.path.join(tempfile.mkdtemp(prefix="ldap_jax_bench_"), "kept_memory.json")
+    cmd = [sys.executable, os.path.abspath(__file__), "--kept-memory", out, "--rounds", str(cfg.rounds)]
+    cmd += ["--quick"] if cfg.quick else []
+    log("  a process that keeps freed memory (lj.keep_freed_memory())")
+    subprocess.run(cmd, check=True)
+    with open(out) as f:
+        return json.load(f)
 
 
 def _autodiff_problem(system, ctl):
@@ -1304,6 +1340,8 @@ def main(argv=None) -> int:
     p.add_argument("--only", default=None, help=f"comma-separated sections among {', '.join(SECTIONS)}")
     # the pinned process of ours_over_c (_one_core): writes its rows to the given file
     p.add_argument("--one-core", default=None, help=argparse.SUPPRESS)
+    # the process of default_call that keeps freed memory (_kept_memory): writes its rows there
+    p.add_argument("--kept-memory", default=None, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.repeats is not None and args.repeats < 1:
         p.error("--repeats must be a positive integer")
@@ -1320,6 +1358,15 @@ def main(argv=None) -> int:
             cfg, lambda msg: print(f"[{time.perf_counter() - t0:7.1f}s] {msg}", flush=True), one_core=True
         )
         with open(args.one_core, "w") as f:
+            json.dump(rows, f)
+        return 0
+    if args.kept_memory is not None:
+        cfg = Config.for_run(args.quick, args.repeats, args.rounds)
+        t0 = time.perf_counter()
+        rows = default_call(
+            cfg, lambda msg: print(f"[{time.perf_counter() - t0:7.1f}s] {msg}", flush=True), kept=True
+        )
+        with open(args.kept_memory, "w") as f:
             json.dump(rows, f)
         return 0
     if os.path.exists(args.out) and not os.path.isdir(args.out):
