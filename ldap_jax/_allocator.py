@@ -52,7 +52,9 @@ def keep_freed_memory(keep: bool = True) -> bool:
     forward pass's residuals (about 8 arrays of ``(n_steps, batch)`` floats for the snakeboard's
     order-2 step), which XLA allocates anew at each call. Measured for a batch of 1000 snakeboard
     runs of 1000 steps, on 2 cores: about 16e3 page faults per gradient call and 15-20% of its time
-    without; none with. A forward rollout gains little (it keeps no residuals).
+    without; none with. A forward rollout gains little (it keeps no residuals). What it saves
+    depends on how XLA allocates a program's temporaries: measured with XLA's default code
+    generation (a plain ``jax.jit``).
 
     Call it first, before anything runs (as :func:`use_cpu_cores`): the threads that JAX starts
     then share glibc's main arena, and blocks of any size up to 1 GiB are kept. Called later,
