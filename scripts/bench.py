@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import os
 import platform
@@ -471,16 +472,11 @@ def _one_core(cfg: Config, log) -> list[dict]:
     (``os.sched_setaffinity`` before JAX starts, so JAX's threads and C's share that core; JAX
     with its one host device, not one per core), its rows read back; ``[]`` where a process
     cannot be pinned (no ``sched_setaffinity``)."""
-    import subprocess
-    import tempfile
 
     if not hasattr(os, "sched_setaffinity"):
         log("  one core: no os.sched_setaffinity here, skipped")
         return []
     core = min(os.sched_getaffinity(0))
-    out = os.path.join(tempfile.mkdtemp(prefix="ldap_jax_bench_"), "one_core.json")
-    cmd = [sys.executable, os.path.abspath(__file__), "--one-core", out, "--rounds", str(cfg.rounds)]
-    cmd += ["--quick"] if cfg.quick else []
     # without this process's one-device-per-core flag (lj.use_cpu_cores above): the pinned process
     # runs JAX with its one host device, as a user's has it (inheriting the flag, its one-device
     # program ran 2x as long on the pinned core)
@@ -488,6 +484,18 @@ def _one_core(cfg: Config, log) -> list[dict]:
     flags = [f for f in os.environ.get("XLA_FLAGS", "").split() if not f.startswith(count)]
     env = dict(os.environ, XLA_FLAGS=" ".join(flags))
     log(f"  one core: a process pinned to core {core}")
+    return _child_rows("--one-core", cfg, env)
+
+
+def _child_rows(flag: str, cfg: Config, env: dict | None = None) -> list[dict]:
+    """The rows of a section run in a new process of this script (``flag``: ``--one-core`` or
+    ``--kept-memory``, each set up before JAX starts), with this run's rounds and size."""
+    import subprocess
+    import tempfile
+
+    out = os.path.join(tempfile.mkdtemp(prefix="ldap_jax_bench_"), "rows.json")
+    cmd = [sys.executable, os.path.abspath(__file__), flag, out, "--rounds", str(cfg.rounds)]
+    cmd += ["--quick"] if cfg.quick else []
     subprocess.run(cmd, check=True, env=env)
     with open(out) as f:
         return json.load(f)
@@ -591,16 +599,8 @@ def _kept_memory(cfg: Config, log) -> list[dict]:
     """:func:`default_call`'s terminal cost and its gradient in a new process that calls
     :func:`ldap_jax.keep_freed_memory` before JAX starts (a setting of the whole process, which
     cannot be undone for the other rows), its rows read back."""
-    import subprocess
-    import tempfile
-
-    out = os.path.join(tempfile.mkdtemp(prefix="ldap_jax_bench_"), "kept_memory.json")
-    cmd = [sys.executable, os.path.abspath(__file__), "--kept-memory", out, "--rounds", str(cfg.rounds)]
-    cmd += ["--quick"] if cfg.quick else []
     log("  a process that keeps freed memory (lj.keep_freed_memory())")
-    subprocess.run(cmd, check=True)
-    with open(out) as f:
-        return json.load(f)
+    return _child_rows("--kept-memory", cfg)
 
 
 def _autodiff_problem(system, ctl):
@@ -1351,24 +1351,18 @@ def main(argv=None) -> int:
     bad = [s for s in only if s not in SECTIONS]
     if bad:
         p.error(f"--only: unknown sections {bad}; choose among {', '.join(SECTIONS)}")
-    if args.one_core is not None:
-        cfg = Config.for_run(args.quick, args.repeats, args.rounds)
-        t0 = time.perf_counter()
-        rows = ours_over_c(
-            cfg, lambda msg: print(f"[{time.perf_counter() - t0:7.1f}s] {msg}", flush=True), one_core=True
-        )
-        with open(args.one_core, "w") as f:
-            json.dump(rows, f)
-        return 0
-    if args.kept_memory is not None:
-        cfg = Config.for_run(args.quick, args.repeats, args.rounds)
-        t0 = time.perf_counter()
-        rows = default_call(
-            cfg, lambda msg: print(f"[{time.perf_counter() - t0:7.1f}s] {msg}", flush=True), kept=True
-        )
-        with open(args.kept_memory, "w") as f:
-            json.dump(rows, f)
-        return 0
+    # a process of its own that a section started (_child_rows): its rows, written to the file given
+    for path, section in (
+        (args.one_core, functools.partial(ours_over_c, one_core=True)),
+        (args.kept_memory, functools.partial(default_call, kept=True)),
+    ):
+        if path is not None:
+            cfg = Config.for_run(args.quick, args.repeats, args.rounds)
+            t0 = time.perf_counter()
+            rows = section(cfg, lambda msg: print(f"[{time.perf_counter() - t0:7.1f}s] {msg}", flush=True))
+            with open(path, "w") as f:
+                json.dump(rows, f)
+            return 0
     if os.path.exists(args.out) and not os.path.isdir(args.out):
         p.error(f"--out {args.out} exists and is not a directory")
     os.makedirs(args.out, exist_ok=True)
