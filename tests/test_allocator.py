@@ -13,13 +13,13 @@ measures a gradient's faults with and without the setting.)
 from __future__ import annotations
 
 import json
-import platform
 import subprocess
 import sys
 
 import pytest
 
 import ldap_jax as lj
+from ldap_jax._allocator import _libc
 
 CHILD = r"""
 import ctypes, json, resource, sys
@@ -54,7 +54,7 @@ json.dump(dict(pages=SIZE // 4096, flags=[kept, released], plain=plain, during=d
 
 
 @pytest.mark.skipif(
-    platform.system() != "Linux" or platform.libc_ver()[0] != "glibc", reason="glibc's allocator only"
+    _libc() is None, reason="the setting applies to glibc's allocator only (elsewhere it returns False)"
 )
 def test_kept_memory_is_not_touched_afresh_at_every_call(tmp_path):
     out = tmp_path / "faults.json"
